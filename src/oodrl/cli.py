@@ -1,0 +1,240 @@
+"""The `oodrl` command line. Stage verbs are thin: load params, call one stage function.
+
+Every command validates params.yaml first; an OodrlError becomes one line on stderr and a
+non-zero exit (2 for bad params or usage, 1 otherwise), never a traceback.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from oodrl.errors import ConfigError, OodrlError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="oodrl: which OOD detector notices which fault in an RL agent's trajectory.",
+)
+
+ParamsOption = Annotated[Path, typer.Option("--params", help="params file to validate and use")]
+PathOption = functools.partial(typer.Option, help="path (dvc.yaml passes it)")
+
+
+def _fail(error: OodrlError) -> None:
+    typer.echo(f"error: {error}", err=True)
+    raise typer.Exit(2 if isinstance(error, ConfigError) else 1)
+
+
+def command(name: str | None = None):
+    """Register a command whose OodrlErrors become a one-line message and an exit code."""
+
+    def decorate(func):
+        @functools.wraps(func)
+        def wrapper(*args, **kwargs):
+            try:
+                return func(*args, **kwargs)
+            except OodrlError as error:
+                _fail(error)
+
+        return app.command(name)(wrapper)
+
+    return decorate
+
+
+def _load(params_path: Path):
+    from oodrl.config import load_params
+
+    return load_params(params_path)
+
+
+def _stage(name: str):
+    from oodrl.stages.common import timed_stage
+
+    return timed_stage(name)
+
+
+# -- user verbs ------------------------------------------------------------------------------
+@command("list")
+def list_components() -> None:
+    """List registered components by kind."""
+    from oodrl.detectors import DETECTORS
+    from oodrl.envs import ENVIRONMENTS
+    from oodrl.injectors import INJECTORS
+    from oodrl.metrics import METRICS
+
+    for kind, registry in (
+        ("detectors", DETECTORS),
+        ("injectors", INJECTORS),
+        ("metrics", METRICS),
+        ("environments", ENVIRONMENTS),
+    ):
+        typer.echo(f"{kind}:")
+        for name in registry.names():
+            extra = ""
+            if kind == "injectors":
+                extra = f"  ({registry.get(name).mode})"
+            typer.echo(f"  {name}{extra}")
+
+
+@command("check-params")
+def check_params(path: Annotated[Path, typer.Argument()] = Path("params.yaml")) -> None:
+    """Validate a params file; one line per problem and exit code 2 when invalid."""
+    params = _load(path)
+    typer.echo(
+        f"{path}: ok ({len(params.benchmark.detectors)} detectors, "
+        f"{len(params.benchmark.injectors)} injectors, T={params.env.T}, "
+        f"onset={params.env.resolved_onset})"
+    )
+
+
+@command("evaluate-policy")
+def evaluate_policy(
+    policy: Annotated[Path, typer.Option(help="policy file")] = Path("models/policy.pt"),
+    episodes: Annotated[int, typer.Option(min=1)] = 30,
+    seed: Annotated[int, typer.Option(min=0)] = 1_000_000,
+    mode: Annotated[str, typer.Option(help="greedy or noisy")] = "greedy",
+) -> None:
+    """Roll out full episodes and print the mean ± std return."""
+    from oodrl.policies.load import evaluate_policy as evaluate
+    from oodrl.policies.load import load_policy
+
+    if mode not in ("greedy", "noisy"):
+        raise ConfigError(f"--mode must be 'greedy' or 'noisy'; got {mode!r}.")
+    returns = evaluate(load_policy(policy, mode=mode), episodes=episodes, seed=seed)
+    typer.echo(
+        f"{policy}: mean return {returns.mean():.1f} ± {returns.std():.1f} over {episodes} "
+        f"episodes (seeds {seed}..{seed + episodes - 1}, {mode})"
+    )
+
+
+@command("show")
+def show(path: Annotated[Path, typer.Argument(help="results.yaml or sweep_results.yaml")]) -> None:
+    """Render the tables of a results or sweep file in the terminal."""
+    from oodrl.report.show import show as render
+
+    typer.echo(render(path))
+
+
+# -- stage verbs (dvc.yaml is their caller) ---------------------------------------------------
+@command("train-policy")
+def train_policy(
+    out: Annotated[Path, PathOption()],
+    report: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage train_policy: train the NoisyNet DQN policy."""
+    from oodrl.stages.train import train_policy as run
+
+    config = _load(params)
+    with _stage("train_policy"):
+        run(config, out, report)
+
+
+@command("collect-id")
+def collect_id(
+    policy: Annotated[Path, PathOption()],
+    out: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage collect_id: clean in-distribution trajectories with the fit/calibration split."""
+    from oodrl.stages.collect import collect_id as run
+
+    config = _load(params)
+    with _stage("collect_id"):
+        run(config, policy, out)
+
+
+@command("collect-eval")
+def collect_eval(
+    policy: Annotated[Path, PathOption()],
+    out: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage collect_eval: the clean evaluation set (matched counterparts)."""
+    from oodrl.stages.collect import collect_eval as run
+
+    config = _load(params)
+    with _stage("collect_eval"):
+        run(config, policy, out)
+
+
+def _known(name: str, names: list[str], key: str) -> None:
+    if name not in names:
+        raise ConfigError(f"'{name}' is not listed in {key}; listed: {', '.join(names)}.")
+
+
+@command("collect-ood")
+def collect_ood(
+    injector: Annotated[str, typer.Argument()],
+    policy: Annotated[Path, PathOption()],
+    eval: Annotated[Path, PathOption()],  # noqa: A002 - the option is --eval
+    out: Annotated[Path, PathOption()],
+    sweep: Annotated[bool, typer.Option(help="every severity of anomaly.sweep")] = False,
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stages collect_ood / collect_sweep: one injector's perturbed set(s)."""
+    from oodrl.stages import collect
+
+    config = _load(params)
+    _known(injector, config.benchmark.injectors, "benchmark.injectors")
+    name = f"{'collect_sweep' if sweep else 'collect_ood'}@{injector}"
+    run = collect.collect_sweep if sweep else collect.collect_ood
+    with _stage(name):
+        run(config, injector, policy, eval, out)
+
+
+@command("fit")
+def fit(
+    detector: Annotated[str, typer.Argument()],
+    id: Annotated[Path, PathOption()],  # noqa: A002 - the option is --id
+    out: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage fit: fit and calibrate one detector."""
+    from oodrl.stages.fit import fit_detector
+
+    config = _load(params)
+    _known(detector, config.benchmark.detectors, "benchmark.detectors")
+    with _stage(f"fit@{detector}"):
+        fit_detector(config, detector, id, out)
+
+
+@command("score")
+def score(
+    detector: Annotated[str, typer.Argument()],
+    model: Annotated[Path, PathOption()],
+    out: Annotated[Path, PathOption()],
+    injector: Annotated[str | None, typer.Option(help="score this injector's sets")] = None,
+    eval: Annotated[Path | None, PathOption()] = None,  # noqa: A002 - the option is --eval
+    ood: Annotated[Path | None, PathOption()] = None,
+    sweep: Annotated[Path | None, PathOption()] = None,
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stages score_clean / score: one detector on the clean set or on one injector's sets."""
+    from oodrl.stages import score as stages
+
+    config = _load(params)
+    _known(detector, config.benchmark.detectors, "benchmark.detectors")
+    if injector is None:
+        if eval is None:
+            raise ConfigError(
+                "score needs --eval (clean set) or --injector with --ood and --sweep."
+            )
+        with _stage(f"score_clean@{detector}"):
+            stages.score_clean(config, detector, model, eval, out)
+        return
+    _known(injector, config.benchmark.injectors, "benchmark.injectors")
+    if ood is None or sweep is None:
+        raise ConfigError("score --injector needs both --ood and --sweep.")
+    with _stage(f"score@{detector}-{injector}"):
+        stages.score_injector(config, detector, injector, model, ood, sweep, out)
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    sys.exit(app())

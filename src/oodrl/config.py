@@ -1,0 +1,235 @@
+"""Typed, validated params.yaml (SPEC §8).
+
+Loading validates everything a stage could read: structure and types (pydantic, unknown keys
+refused), the protocol's ranges, and every detector's and injector's own parameters (their
+declared constraints). Any problem is one `ConfigError` line naming the key path and what is
+allowed; the CLI turns it into exit code 2 before anything is written.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from oodrl.errors import ConfigError, OodrlError
+
+DEFAULT_PARAMS = Path("params.yaml")
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+class EnvConfig(_Section):
+    id: str = "LunarLander-v3"
+    T: int = Field(500, ge=2)
+    onset: int | None = None  # None: floor(T / 3)
+
+    @property
+    def resolved_onset(self) -> int:
+        return self.T // 3 if self.onset is None else self.onset
+
+
+class DataConfig(_Section):
+    n_id: int = Field(30, ge=2)
+    n_ood: int = Field(20, ge=1)
+    calibration_fraction: float = Field(0.2, gt=0, lt=1)
+    eval_seed_offset: int = Field(10_000, ge=1)
+
+    @property
+    def n_calibration(self) -> int:
+        return min(self.n_id - 1, max(1, round(self.n_id * self.calibration_fraction)))
+
+
+class PolicyConfig(_Section):
+    mode: Literal["greedy", "noisy"] = "greedy"
+    train: dict[str, Any] = Field(default_factory=dict)
+
+
+class AnomalyConfig(_Section):
+    severity: float = Field(0.5, ge=0, le=1)
+    offset: int | None = None
+    sweep: list[float] = Field(default_factory=lambda: [0.1, 0.2, 0.4, 0.6, 0.8])
+    injectors: dict[str, dict[str, Any]] = Field(default_factory=dict)
+
+
+class MetricsConfig(_Section):
+    n_boot: int = Field(1000, ge=1)
+    ci: float = Field(0.95, gt=0, lt=1)
+    tpr_target: float = Field(0.95, gt=0, le=1)
+    temporal_buffer: int = Field(10, ge=0)
+    traces_per_anomaly: int = Field(2, ge=0)
+
+
+class ExecutorConfig(_Section):
+    # 0 = all available cores. Results are identical for any worker count, so no stage lists
+    # this key as a DVC param: changing it re-runs nothing.
+    workers: int = Field(0, ge=0)
+    progress: Literal["auto", "always", "never"] = "auto"
+
+    @property
+    def resolved_workers(self) -> int:
+        import os
+
+        return self.workers or len(os.sched_getaffinity(0))
+
+
+class BenchmarkConfig(_Section):
+    """Which detectors and injectors run; their parameters live in their own blocks.
+
+    These lists drive the DVC stage fan-out (`foreach`/`matrix` need lists).
+    """
+
+    detectors: list[str] = Field(min_length=1)
+    injectors: list[str] = Field(min_length=1)
+
+
+class Params(_Section):
+    seed: int = Field(0, ge=0)
+    benchmark: BenchmarkConfig
+    env: EnvConfig = EnvConfig()
+    data: DataConfig = DataConfig()
+    policy: PolicyConfig = PolicyConfig()
+    anomaly: AnomalyConfig = AnomalyConfig()
+    detectors: dict[str, dict[str, Any]] = Field(default_factory=dict)
+    metrics: MetricsConfig = MetricsConfig()
+    executor: ExecutorConfig = ExecutorConfig()
+
+    @model_validator(mode="after")
+    def _protocol_ranges(self) -> Params:
+        T, onset = self.env.T, self.env.resolved_onset
+        if not 1 <= onset < T:
+            raise ValueError(f"env.onset: must be in [1, T={T}); got {onset}")
+        offset = self.anomaly.offset
+        if offset is not None and not onset < offset <= T:
+            raise ValueError(
+                f"anomaly.offset: must be null or in (onset={onset}, T={T}]; got {offset}"
+            )
+        grid = self.anomaly.sweep
+        if not grid:
+            raise ValueError("anomaly.sweep: must list at least one severity")
+        if any(not 0 <= s <= 1 for s in grid):
+            raise ValueError(f"anomaly.sweep: every severity must be in [0, 1]; got {grid}")
+        if any(b <= a for a, b in zip(grid, grid[1:], strict=False)):
+            raise ValueError(f"anomaly.sweep: must be strictly increasing; got {grid}")
+        for key, names, blocks in (
+            ("detectors", self.benchmark.detectors, self.detectors),
+            ("injectors", self.benchmark.injectors, self.anomaly.injectors),
+        ):
+            if len(set(names)) != len(names):
+                raise ValueError(f"benchmark.{key}: names must be unique; got {names}")
+            missing = [n for n in names if n not in blocks]
+            if missing:
+                section = "detectors" if key == "detectors" else "anomaly.injectors"
+                raise ValueError(
+                    f"benchmark.{key}: {missing[0]!r} has no parameter block under {section} "
+                    f"(blocks: {', '.join(sorted(blocks)) or 'none'})"
+                )
+        return self
+
+    # -- components, validated on load -----------------------------------------------------
+    @cached_property
+    def detector_classes(self) -> dict[str, type]:
+        from oodrl.detectors import DETECTORS
+
+        return {
+            n: _component_class(DETECTORS, "detectors", n, b) for n, b in self.detectors.items()
+        }
+
+    @cached_property
+    def injector_classes(self) -> dict[str, type]:
+        from oodrl.injectors import INJECTORS
+
+        return {
+            n: _component_class(INJECTORS, "anomaly.injectors", n, b)
+            for n, b in self.anomaly.injectors.items()
+        }
+
+    def detector(self, name: str):
+        """A fresh, validated detector instance built from its params block."""
+        return _build(self.detector_classes[name], f"detectors.{name}", self.detectors[name])
+
+    def injector(self, name: str):
+        block = self.anomaly.injectors[name]
+        return _build(self.injector_classes[name], f"anomaly.injectors.{name}", block)
+
+    def injector_severity(self, name: str) -> float:
+        own = self.anomaly.injectors[name].get("severity")
+        return self.anomaly.severity if own is None else float(own)
+
+    def validate_components(self) -> None:
+        for name in self.detectors:
+            self.detector(name)
+        for name in self.anomaly.injectors:
+            self.injector(name)
+        self._validate_policy_train()
+
+    def _validate_policy_train(self) -> None:
+        from oodrl.policies.train import TrainConfig
+
+        try:
+            TrainConfig.from_params(self.policy.train)
+        except OodrlError as error:
+            raise ConfigError(f"policy.train: {error}") from None
+        except TypeError as error:
+            raise ConfigError(f"policy.train: {error}") from None
+
+
+def _component_class(registry, section: str, name: str, block: dict[str, Any]) -> type:
+    path = block.get("class")
+    try:
+        return registry.get(path if path else name)
+    except OodrlError as error:
+        raise ConfigError(f"{section}.{name}: {error}") from None
+
+
+def _build(cls: type, key: str, block: dict[str, Any]):
+    params = {k: v for k, v in block.items() if k != "class"}
+    try:
+        return cls.from_params(params)
+    except OodrlError as error:
+        raise ConfigError(f"{key}: {error}") from None
+
+
+def _format_pydantic(error: ValidationError) -> str:
+    first = error.errors()[0]
+    loc = ".".join(str(p) for p in first["loc"]) or "params"
+    message = first["msg"].removeprefix("Value error, ")
+    if first["type"] == "extra_forbidden":
+        return f"{loc}: unknown key (not a parameter of this section)"
+    if loc != "params" and message.startswith(loc):
+        return message
+    return f"{loc}: {message} (got {first.get('input')!r})" if "input" in first else message
+
+
+def parse_params(data: Any, source: str = "params") -> Params:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: must be a mapping of sections; got {type(data).__name__}.")
+    try:
+        params = Params.model_validate(data)
+    except ValidationError as error:
+        raise ConfigError(f"{source}: {_format_pydantic(error)}") from None
+    try:
+        params.validate_components()
+    except ConfigError as error:
+        raise ConfigError(f"{source}: {error}") from None
+    return params
+
+
+def load_params(path: Path | str = DEFAULT_PARAMS) -> Params:
+    """Read and validate a params file; every problem is a one-line ConfigError."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{path}: params file not found.")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        raise ConfigError(f"{path}: not valid YAML{where}.") from None
+    return parse_params(data, str(path))

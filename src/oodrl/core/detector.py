@@ -1,0 +1,155 @@
+"""DetectorOutput and the BaseDetector contract (SPEC §1, §5).
+
+Score direction: a larger score means more anomalous, for every detector.
+Subclasses implement `_fit` and `_score` (and may override `_score_many` to batch);
+the base class owns `fit`, `calibrate`, `score`, the threshold rules and the alarms,
+so no detector can forget its threshold or mutate itself while scoring.
+"""
+
+from __future__ import annotations
+
+from abc import abstractmethod
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+from oodrl.core.trajectory import Trajectory
+from oodrl.errors import ContractError, DetectorError, NotFittedError
+from oodrl.validation import Component, Interval, Options
+
+THRESHOLD_RULES = ("percentile", "max")
+
+
+@dataclass(frozen=True, eq=False)
+class DetectorOutput:
+    """Scores (T,) float64, larger = more anomalous; alarms = scores >= threshold if calibrated."""
+
+    scores: np.ndarray
+    alarms: np.ndarray | None = None
+    threshold: float | None = None
+
+    def __post_init__(self) -> None:
+        scores = np.asarray(self.scores, dtype=np.float64)
+        if scores.ndim != 1:
+            raise ContractError(f"DetectorOutput.scores must be 1-D; got shape {scores.shape}.")
+        if not np.isfinite(scores).all():
+            raise ContractError("DetectorOutput.scores contains NaN or inf.")
+        object.__setattr__(self, "scores", scores)
+        if self.alarms is not None:
+            alarms = np.asarray(self.alarms)
+            if alarms.shape != scores.shape or alarms.dtype != bool:
+                raise ContractError(
+                    f"DetectorOutput.alarms must be bool with shape {scores.shape}; "
+                    f"got {alarms.dtype} {alarms.shape}."
+                )
+
+
+def threshold_from_scores(scores: np.ndarray, rule: str, percentile: float) -> float:
+    """The alarm threshold from held-out clean scores: a percentile, or the maximum."""
+    if rule == "max":
+        return float(np.max(scores))
+    return float(np.percentile(scores, percentile))
+
+
+class BaseDetector(Component):
+    """Fit once on in-distribution trajectories, calibrate on held-out ones, then score.
+
+    Learned state ends in `_` (`state_dim_`, `threshold_`): `state_dim_` set means fitted.
+    """
+
+    name: ClassVar[str] = ""
+    #: Whether the detector needs torch (its stage then pays torch's import time).
+    uses_torch: ClassVar[bool] = False
+
+    _parameter_constraints: ClassVar[dict[str, list]] = {
+        "threshold_rule": [Options(THRESHOLD_RULES)],
+        "threshold_percentile": [Interval(float, 0, 100, closed="both")],
+        "seed": [Interval(int, 0, None)],
+    }
+
+    def __init__(
+        self,
+        *,
+        threshold_rule: str = "percentile",
+        threshold_percentile: float = 99.0,
+        seed: int = 0,
+    ) -> None:
+        self.threshold_rule = threshold_rule
+        self.threshold_percentile = threshold_percentile
+        self.seed = seed
+
+    # -- what subclasses write -------------------------------------------------------------
+    @abstractmethod
+    def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        """Learn from in-distribution trajectories; store learned state in attributes ending `_`."""
+
+    @abstractmethod
+    def _score(self, trajectory: Trajectory) -> np.ndarray:
+        """Scores (T,) for one trajectory. Must not change `self`."""
+
+    def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        """Scores for many trajectories; override to batch (e.g. one network pass)."""
+        return [self._score(t) for t in trajectories]
+
+    # -- the public contract ---------------------------------------------------------------
+    @property
+    def detector_name(self) -> str:
+        return self.name or type(self).__name__
+
+    def fit(self, trajectories: Sequence[Trajectory]) -> BaseDetector:
+        self.validate_params()
+        trajectories = list(trajectories)
+        if not trajectories:
+            raise ContractError(f"{self.detector_name}.fit needs at least one trajectory.")
+        dims = {t.state_dim for t in trajectories}
+        if len(dims) != 1:
+            raise ContractError(f"{self.detector_name}.fit got mixed state dimensions {dims}.")
+        self.state_dim_ = dims.pop()
+        self._fit(trajectories)
+        return self
+
+    def calibrate(self, trajectories: Sequence[Trajectory]) -> BaseDetector:
+        """Set `threshold_` from held-out clean trajectories by the declared rule."""
+        scores = np.concatenate([o.scores for o in self._checked_scores(list(trajectories))])
+        self.threshold_ = threshold_from_scores(
+            scores, self.threshold_rule, self.threshold_percentile
+        )
+        return self
+
+    def score(self, trajectory: Trajectory) -> DetectorOutput:
+        return self.score_many([trajectory])[0]
+
+    def score_many(self, trajectories: Sequence[Trajectory]) -> list[DetectorOutput]:
+        outputs = self._checked_scores(list(trajectories))
+        threshold = getattr(self, "threshold_", None)
+        if threshold is None:
+            return outputs
+        return [DetectorOutput(o.scores, o.scores >= threshold, threshold) for o in outputs]
+
+    def _checked_scores(self, trajectories: list[Trajectory]) -> list[DetectorOutput]:
+        if not hasattr(self, "state_dim_"):
+            raise NotFittedError(f"{self.detector_name} is not fitted: call fit() before scoring.")
+        for t in trajectories:
+            if t.state_dim != self.state_dim_:
+                raise ContractError(
+                    f"{self.detector_name} was fitted on state dimension {self.state_dim_}; "
+                    f"got a trajectory with state dimension {t.state_dim}."
+                )
+        outputs = []
+        for index, (t, raw) in enumerate(
+            zip(trajectories, self._score_many(trajectories), strict=True)
+        ):
+            scores = np.asarray(raw, dtype=np.float64)
+            if scores.shape != (t.T,) or not np.isfinite(scores).all():
+                raise DetectorError(
+                    f"Detector '{self.detector_name}' returned invalid scores for trajectory "
+                    f"{index} (shape {scores.shape}, expected ({t.T},), finite)."
+                )
+            outputs.append(DetectorOutput(scores))
+        return outputs
+
+    def fitted_state(self) -> dict[str, Any]:
+        """Learned attributes (ending in `_`), for reproducibility checks."""
+        return {k: v for k, v in vars(self).items() if k.endswith("_")}

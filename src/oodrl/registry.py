@@ -1,0 +1,87 @@
+"""One generic lazy registry for detectors, injectors, metrics and environments.
+
+Built-ins register an import path (`"oodrl.detectors.kde:KdeDensity"`) in their subpackage's
+`__init__`; the object is imported on first use. Third parties add components through the
+entry-point groups `oodrl.<kind>` or by naming a `module:Class` path in params.yaml.
+"""
+
+from __future__ import annotations
+
+import difflib
+import importlib
+from collections.abc import Iterator
+from importlib.metadata import entry_points
+from typing import Any
+
+from oodrl.errors import RegistryError
+
+
+def import_path(path: str) -> Any:
+    """Import `module:attribute`, with an error that says which part is missing."""
+    module_name, sep, attribute = path.partition(":")
+    if not sep or not module_name or not attribute:
+        raise RegistryError(f"'{path}' is not an import path; expected 'package.module:Class'.")
+    try:
+        module = importlib.import_module(module_name)
+    except ImportError as error:
+        raise RegistryError(f"Cannot import module '{module_name}' of '{path}': {error}") from None
+    try:
+        return getattr(module, attribute)
+    except AttributeError:
+        raise RegistryError(f"Module '{module_name}' has no attribute '{attribute}'.") from None
+
+
+class Registry:
+    """Names (snake_case) to lazily imported objects of one kind."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+        self._paths: dict[str, str] = {}
+        self._loaded: dict[str, Any] = {}
+        self._entry_points_read = False
+
+    def register(self, name: str, path: str) -> None:
+        if name in self._paths:
+            raise RegistryError(
+                f"A {self.kind} named '{name}' is already registered ({self._paths[name]})."
+            )
+        self._paths[name] = path
+
+    def _read_entry_points(self) -> None:
+        if self._entry_points_read:
+            return
+        self._entry_points_read = True
+        for ep in entry_points(group=f"oodrl.{self.kind}s"):
+            self.register(ep.name, ep.value)
+
+    def names(self) -> list[str]:
+        self._read_entry_points()
+        return sorted(self._paths)
+
+    def path(self, name: str) -> str:
+        self._read_entry_points()
+        if name not in self._paths:
+            close = difflib.get_close_matches(name, self._paths, n=1)
+            hint = f" Did you mean '{close[0]}'?" if close else ""
+            raise RegistryError(
+                f"Unknown {self.kind} '{name}'.{hint} Known: {', '.join(sorted(self._paths))}."
+            )
+        return self._paths[name]
+
+    def get(self, name: str) -> Any:
+        """The object registered as `name`; a `module:Class` path is imported directly."""
+        if ":" in name:
+            return import_path(name)
+        if name not in self._loaded:
+            obj = import_path(self.path(name))
+            if isinstance(obj, type) and not getattr(obj, "name", None):
+                obj.name = name
+            self._loaded[name] = obj
+        return self._loaded[name]
+
+    def __contains__(self, name: str) -> bool:
+        self._read_entry_points()
+        return name in self._paths
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.names())

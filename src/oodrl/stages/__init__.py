@@ -1,0 +1,1 @@
+"""One `run`-style function per pipeline stage; the CLI parses paths and calls them."""

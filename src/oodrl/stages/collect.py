@@ -1,0 +1,134 @@
+"""Collection stages: clean ID and evaluation sets, perturbed headline and sweep sets."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from oodrl.config import Params
+from oodrl.core.trajectory import TrajectorySet
+from oodrl.envs import ENVIRONMENTS
+from oodrl.stages.common import progress_bar
+from oodrl.store import read_trajectories, write_sweep, write_trajectories
+
+
+def _adapter(params: Params):
+    return ENVIRONMENTS.get(params.env.id)()
+
+
+def _policy(params: Params, policy_path: Path):
+    from oodrl.policies.load import load_policy
+
+    return load_policy(policy_path, mode=params.policy.mode)
+
+
+def _base_attrs(params: Params, adapter, policy) -> dict:
+    return {
+        "env_id": params.env.id,
+        "env_version": adapter.version(),
+        "T": params.env.T,
+        "onset": params.env.resolved_onset,
+        "policy_mode": params.policy.mode,
+        "policy_sha256": policy.sha256,
+        "seed": params.seed,
+    }
+
+
+def id_seeds(params: Params) -> list[int]:
+    return [params.seed + i for i in range(params.data.n_id)]
+
+
+def eval_seeds(params: Params) -> list[int]:
+    return [params.seed + params.data.eval_seed_offset + j for j in range(params.data.n_ood)]
+
+
+def fit_calibration_split(params: Params) -> tuple[list[int], list[int]]:
+    """Trajectory indices of the fit and calibration parts: a seeded split by trajectory."""
+    order = np.random.default_rng(params.seed).permutation(params.data.n_id)
+    n_cal = params.data.n_calibration
+    return sorted(order[n_cal:].tolist()), sorted(order[:n_cal].tolist())
+
+
+def _collect_clean(params: Params, policy_path: Path, seeds: list[int], label: str, extra: dict):
+    from oodrl.envs.collect import collect
+
+    adapter, policy = _adapter(params), _policy(params, policy_path)
+    attrs = {**_base_attrs(params, adapter, policy), "mode": "clean", "spec": None, **extra}
+    with progress_bar(len(seeds), label, params.executor.progress) as bar:
+        return collect(
+            adapter,
+            policy,
+            seeds,
+            params.env.T,
+            policy_seed=params.seed,
+            workers=params.executor.resolved_workers,
+            attrs=attrs,
+            progress=bar.update,
+        )
+
+
+def collect_id(params: Params, policy_path: Path, out: Path) -> TrajectorySet:
+    fit, calibration = fit_calibration_split(params)
+    tset = _collect_clean(
+        params,
+        policy_path,
+        id_seeds(params),
+        "collect_id",
+        {"split": {"calibration": calibration, "fit": fit}},
+    )
+    write_trajectories(out, tset)
+    return tset
+
+
+def collect_eval(params: Params, policy_path: Path, out: Path) -> TrajectorySet:
+    tset = _collect_clean(params, policy_path, eval_seeds(params), "collect_eval", {})
+    write_trajectories(out, tset)
+    return tset
+
+
+def perturbed_set(
+    params: Params, injector_name: str, severity: float, policy_path: Path, eval_path: Path
+) -> TrajectorySet:
+    """The evaluation set with one injector's anomaly at one severity (SPEC §3)."""
+    from oodrl.injectors.apply import collect_online, perturb_posthoc
+
+    injector = params.injector(injector_name)
+    spec = injector.spec(severity, params.env.resolved_onset, params.anomaly.offset)
+    if injector.mode == "posthoc":
+        clean = read_trajectories(eval_path, stage="collect_eval")
+        return perturb_posthoc(injector, clean, spec, params.seed)
+    adapter, policy = _adapter(params), _policy(params, policy_path)
+    tset = collect_online(
+        injector,
+        adapter,
+        policy,
+        eval_seeds(params),
+        params.env.T,
+        spec,
+        seed=params.seed,
+        policy_seed=params.seed,
+        workers=params.executor.resolved_workers,
+    )
+    return dataclasses.replace(tset, attrs={**_base_attrs(params, adapter, policy), **tset.attrs})
+
+
+def collect_ood(
+    params: Params, injector_name: str, policy_path: Path, eval_path: Path, out: Path
+) -> None:
+    severity = params.injector_severity(injector_name)
+    write_trajectories(out, perturbed_set(params, injector_name, severity, policy_path, eval_path))
+
+
+def collect_sweep(
+    params: Params, injector_name: str, policy_path: Path, eval_path: Path, out: Path
+) -> None:
+    grid = params.anomaly.sweep
+    sets = {}
+    with progress_bar(len(grid), f"sweep {injector_name}", params.executor.progress) as bar:
+        for severity in grid:
+            sets[severity] = perturbed_set(params, injector_name, severity, policy_path, eval_path)
+            bar.update()
+    mode = next(iter(sets.values())).attrs.get("mode")
+    write_sweep(out, sets, {"injector": injector_name, "mode": mode})

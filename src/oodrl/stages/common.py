@@ -1,0 +1,101 @@
+"""What every stage shares: progress, timings, versions, detector pickles."""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import platform
+import sys
+import time
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from oodrl import __version__
+from oodrl.errors import StoreError
+
+#: Side channel for per-stage wall times; deliberately not a DVC output (timings differ per run).
+TIMINGS_DIR = Path(".oodrl") / "timings"
+DETECTOR_FORMAT = "oodrl-detector"
+TRACKED_LIBRARIES = ("numpy", "scipy", "scikit-learn", "torch", "gymnasium", "zarr", "dvc")
+
+
+def progress_enabled(setting: str = "auto") -> bool:
+    """Progress bars on a terminal, never in CI or when output is redirected."""
+    if setting != "auto":
+        return setting == "always"
+    return sys.stderr.isatty() and not os.environ.get("CI")
+
+
+def progress_bar(total: int, description: str, setting: str = "auto"):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=description, disable=not progress_enabled(setting), leave=False)
+
+
+@contextmanager
+def timed_stage(name: str) -> Iterator[None]:
+    """Record the stage's wall time under .oodrl/timings for run_meta.yaml."""
+    start = time.perf_counter()
+    yield
+    TIMINGS_DIR.mkdir(parents=True, exist_ok=True)
+    record = {"stage": name, "wall_s": round(time.perf_counter() - start, 3)}
+    (TIMINGS_DIR / f"{name.replace('@', '__')}.json").write_text(json.dumps(record))
+
+
+def library_versions(names: tuple[str, ...] = TRACKED_LIBRARIES) -> dict[str, str]:
+    versions = {"oodrl": __version__, "python": platform.python_version()}
+    for name in names:
+        try:
+            versions[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            versions[name] = "absent"
+    return versions
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode())
+
+
+def save_detector(path: Path, detector, name: str, params: dict[str, Any]) -> None:
+    """Pickle a fitted detector with the versions and params that made it."""
+    record = {
+        "format": DETECTOR_FORMAT,
+        "name": name,
+        "params": params,
+        "versions": library_versions(),
+        "detector": detector,
+    }
+    atomic_write_bytes(path, pickle.dumps(record, protocol=5))
+
+
+def load_detector(path: Path, stage: str):
+    """Load a pickle written by `save_detector` (only ever from the pipeline's own paths)."""
+    hint = f"re-run `dvc repro -f {stage}`"
+    if not path.is_file():
+        raise StoreError(f"{path}: fitted detector is missing; {hint}.")
+    try:
+        record = pickle.loads(path.read_bytes())
+    except Exception as error:  # any unpickling failure means a corrupt or foreign file
+        raise StoreError(f"{path}: not a readable oodrl detector ({error}); {hint}.") from None
+    if not isinstance(record, dict) or record.get("format") != DETECTOR_FORMAT:
+        raise StoreError(f"{path}: not an oodrl detector file; {hint}.")
+    saved, current = record["versions"], library_versions()
+    changed = [f"{k} {saved[k]} -> {current.get(k)}" for k in saved if saved[k] != current.get(k)]
+    if changed:
+        warnings.warn(
+            f"{path} was written with other versions ({', '.join(changed)}); {hint} to refit.",
+            stacklevel=2,
+        )
+    return record["detector"]

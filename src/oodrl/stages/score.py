@@ -1,0 +1,87 @@
+"""Scoring stages: one fitted detector on the clean evaluation set, or on one injector's sets.
+
+Score stores hold, per group, `scores` (N, T) float64 and, for perturbed sets, the `labels`
+(N, T) bool they are judged against; the root attributes hold the detector's threshold,
+the detector and injector names, the mode, onset and offset. Groups: `clean` in
+`<detector>/eval.zarr`; `headline` and one `severity_<σ>` per sweep severity in
+`<detector>/<injector>.zarr`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from oodrl.config import Params
+from oodrl.core.trajectory import TrajectorySet
+from oodrl.errors import DetectorError
+from oodrl.stages.common import load_detector
+from oodrl.store import read_sweep, read_trajectories, severity_key, write_scores
+
+HEADLINE_GROUP = "headline"
+CLEAN_GROUP = "clean"
+
+
+def _scores(detector, name: str, tset: TrajectorySet, condition: str) -> np.ndarray:
+    try:
+        outputs = detector.score_many(tset.trajectories())
+    except DetectorError:
+        raise
+    except Exception as error:
+        raise DetectorError(
+            f"Detector '{name}' failed scoring {condition}: {type(error).__name__}: {error}"
+        ) from error
+    return np.stack([o.scores for o in outputs])
+
+
+def _root_attrs(params: Params, detector, name: str) -> dict:
+    return {
+        "detector": name,
+        "threshold": float(detector.threshold_),
+        "onset": params.env.resolved_onset,
+        "offset": params.anomaly.offset,
+        "T": params.env.T,
+    }
+
+
+def score_clean(
+    params: Params, detector_name: str, detector_path: Path, eval_path: Path, out: Path
+):
+    detector = load_detector(detector_path, stage=f"fit@{detector_name}")
+    clean = read_trajectories(eval_path, stage="collect_eval")
+    scores = _scores(detector, detector_name, clean, "the clean evaluation set")
+    write_scores(
+        out, {CLEAN_GROUP: {"scores": scores}}, _root_attrs(params, detector, detector_name)
+    )
+
+
+def score_injector(
+    params: Params,
+    detector_name: str,
+    injector_name: str,
+    detector_path: Path,
+    ood_path: Path,
+    sweep_path: Path,
+    out: Path,
+):
+    detector = load_detector(detector_path, stage=f"fit@{detector_name}")
+    headline = read_trajectories(ood_path, stage=f"collect_ood@{injector_name}")
+    sweep = read_sweep(sweep_path, stage=f"collect_sweep@{injector_name}")
+    groups = {}
+    for group, tset in [(HEADLINE_GROUP, headline)] + [
+        (severity_key(s), t) for s, t in sweep.items()
+    ]:
+        condition = f"{injector_name} ({group})"
+        groups[group] = {
+            "scores": _scores(detector, detector_name, tset, condition),
+            "labels": tset.labels,
+        }
+    attrs = {
+        **_root_attrs(params, detector, detector_name),
+        "injector": injector_name,
+        "mode": headline.attrs["mode"],
+        "severity": headline.attrs["spec"]["severity"],
+        "severities": sorted(sweep),
+    }
+    write_scores(out, groups, attrs)

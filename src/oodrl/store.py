@@ -1,0 +1,210 @@
+"""Zarr v3 stores of trajectory sets and score arrays (SPEC §9).
+
+Every store is written to a temporary sibling path and renamed into place, so a killed
+stage never leaves a half-written store. Arrays are sharded (one file per array), zstd
+compressed, and every array's SHA-256 is recorded in the group attributes: a truncated or
+tampered store is detected on read instead of silently yielding fill values. Nothing
+time- or host-dependent is written, so the same data gives byte-identical stores.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from oodrl.core.trajectory import STEP_FIELDS, TrajectorySet
+from oodrl.errors import StoreError
+
+TRAJECTORY_FORMAT = "oodrl-trajectories"
+SWEEP_FORMAT = "oodrl-sweep"
+SCORES_FORMAT = "oodrl-scores"
+FORMAT_VERSION = 1
+
+_SET_ARRAYS = (*STEP_FIELDS, "episode_index", "seeds", "labels")
+
+
+def canonical(value: Any) -> Any:
+    """JSON-ready, key-sorted, numpy-free copy of attributes (stable bytes on disk)."""
+    if isinstance(value, Mapping):
+        return {str(k): canonical(value[k]) for k in sorted(value, key=str)}
+    if isinstance(value, list | tuple):
+        return [canonical(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value
+
+
+def _digest(array: np.ndarray) -> str:
+    return hashlib.sha256(np.ascontiguousarray(array).tobytes()).hexdigest()
+
+
+def _write_arrays(group, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, Any]) -> None:
+    import zarr
+    from zarr.codecs import ZstdCodec
+
+    checksums = {}
+    for name in sorted(arrays):
+        data = np.ascontiguousarray(arrays[name])
+        zarr.create_array(
+            group.store,
+            name=f"{group.path}/{name}" if group.path else name,
+            data=data,
+            # One shard file per array; inner chunks of one episode each for partial reads.
+            chunks=(1, *data.shape[1:]) if data.ndim and data.shape[0] else data.shape,
+            shards=data.shape,
+            compressors=ZstdCodec(level=3, checksum=True),
+            zarr_format=3,
+        )
+        checksums[name] = _digest(data)
+    group.attrs.update(canonical({**attrs, "checksums": checksums}))
+
+
+def write_store(path: Path, groups: Mapping[str, tuple[Mapping[str, np.ndarray], Mapping]]) -> None:
+    """Write `{group path ('' = root): (arrays, attrs)}` atomically to `path`."""
+    import zarr
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    try:
+        root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
+        for name in sorted(groups):
+            arrays, attrs = groups[name]
+            group = root if name == "" else root.require_group(name)
+            _write_arrays(group, arrays, attrs)
+        if path.exists():
+            shutil.rmtree(path)
+        os.replace(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _rerun_hint(stage: str | None) -> str:
+    return f"re-run `dvc repro -f {stage}`" if stage else "re-run the stage that writes it"
+
+
+def _open_group(path: Path, expected_format: str, stage: str | None):
+    import zarr
+
+    path = Path(path)
+    if not (path / "zarr.json").is_file():
+        raise StoreError(f"{path}: store is missing or incomplete; {_rerun_hint(stage)}.")
+    try:
+        root = zarr.open_group(str(path), mode="r", zarr_format=3)
+        found = root.attrs.get("format")
+    except Exception as error:  # zarr raises many kinds on damaged metadata
+        raise StoreError(f"{path}: unreadable store ({error}); {_rerun_hint(stage)}.") from None
+    if found != expected_format:
+        raise StoreError(
+            f"{path}: not an {expected_format} store (format {found!r}); {_rerun_hint(stage)}."
+        )
+    return root
+
+
+def _read_arrays(group, path: Path, stage: str | None) -> dict[str, np.ndarray]:
+    checksums = dict(group.attrs.get("checksums", {}))
+    arrays = {}
+    for name, digest in checksums.items():
+        try:
+            data = np.asarray(group[name][...])
+        except Exception as error:
+            raise StoreError(
+                f"{path}: array '{group.path}/{name}' is unreadable ({error}); "
+                f"{_rerun_hint(stage)}."
+            ) from None
+        if _digest(data) != digest:
+            raise StoreError(
+                f"{path}: array '{group.path}/{name}' is truncated or corrupt (checksum "
+                f"mismatch); {_rerun_hint(stage)}."
+            )
+        arrays[name] = data
+    return arrays
+
+
+def read_store(
+    path: Path, expected_format: str, stage: str | None = None
+) -> dict[str, tuple[dict[str, np.ndarray], dict]]:
+    """Read every group of a store written by `write_store`, verifying checksums."""
+    root = _open_group(path, expected_format, stage)
+    groups = {"": root}
+    for name, group in root.groups():
+        groups[name] = group
+    return {
+        name: (_read_arrays(group, Path(path), stage), json.loads(json.dumps(dict(group.attrs))))
+        for name, group in sorted(groups.items())
+    }
+
+
+# -- trajectory sets ---------------------------------------------------------------------------
+def _set_arrays(tset: TrajectorySet) -> dict[str, np.ndarray]:
+    return {n: getattr(tset, n) for n in _SET_ARRAYS if getattr(tset, n) is not None}
+
+
+def _set_from(arrays: dict[str, np.ndarray], attrs: dict) -> TrajectorySet:
+    attrs = {k: v for k, v in attrs.items() if k not in ("checksums", "format", "version")}
+    fields = {n: arrays[n] for n in _SET_ARRAYS if n in arrays}
+    return TrajectorySet(**fields, attrs=attrs)
+
+
+def write_trajectories(path: Path, tset: TrajectorySet) -> None:
+    attrs = {**tset.attrs, "format": TRAJECTORY_FORMAT, "version": FORMAT_VERSION}
+    write_store(path, {"": (_set_arrays(tset), attrs)})
+
+
+def read_trajectories(path: Path, stage: str | None = None) -> TrajectorySet:
+    arrays, attrs = read_store(path, TRAJECTORY_FORMAT, stage)[""]
+    return _set_from(arrays, attrs)
+
+
+def severity_key(severity: float) -> str:
+    """Group name of one sweep severity: 'severity_0.4'."""
+    return f"severity_{float(severity)!r}"
+
+
+def write_sweep(path: Path, sets: Mapping[float, TrajectorySet], attrs: Mapping[str, Any]) -> None:
+    """One group per severity, so a sweep over the grid is one store (one DVC output)."""
+    severities = sorted(float(s) for s in sets)
+    groups = {
+        "": (
+            {},
+            {**attrs, "format": SWEEP_FORMAT, "version": FORMAT_VERSION, "severities": severities},
+        ),
+    }
+    for severity in severities:
+        tset = sets[severity]
+        groups[severity_key(severity)] = (_set_arrays(tset), dict(tset.attrs))
+    write_store(path, groups)
+
+
+def read_sweep(path: Path, stage: str | None = None) -> dict[float, TrajectorySet]:
+    groups = read_store(path, SWEEP_FORMAT, stage)
+    return {float(s): _set_from(*groups[severity_key(s)]) for s in groups[""][1]["severities"]}
+
+
+# -- score arrays ------------------------------------------------------------------------------
+def write_scores(
+    path: Path, groups: Mapping[str, Mapping[str, np.ndarray]], attrs: Mapping[str, Any]
+) -> None:
+    """Scores of one detector on one or more trajectory sets: group name -> arrays (N, T)."""
+    tree = {"": ({}, {**attrs, "format": SCORES_FORMAT, "version": FORMAT_VERSION})}
+    for name, arrays in groups.items():
+        tree[name] = (dict(arrays), {})
+    write_store(path, tree)
+
+
+def read_scores(
+    path: Path, stage: str | None = None
+) -> tuple[dict[str, dict[str, np.ndarray]], dict]:
+    groups = read_store(path, SCORES_FORMAT, stage)
+    root_attrs = {k: v for k, v in groups[""][1].items() if k not in ("checksums",)}
+    return {name: arrays for name, (arrays, _) in groups.items() if name}, root_attrs
