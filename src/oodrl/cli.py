@@ -227,13 +227,13 @@ def score(
                 "score needs --eval (clean set) or --injector with --ood and --sweep."
             )
         with _stage(f"score_clean@{detector}"):
-            stages.score_clean(config, detector, model, eval, out)
+            stages.score_clean(detector, model, eval, out)
         return
     _known(injector, config.benchmark.injectors, "benchmark.injectors")
     if ood is None or sweep is None:
         raise ConfigError("score --injector needs both --ood and --sweep.")
     with _stage(f"score@{detector}-{injector}"):
-        stages.score_injector(config, detector, injector, model, ood, sweep, out)
+        stages.score_injector(detector, injector, model, ood, sweep, out)
 
 
 def main() -> None:  # pragma: no cover - console entry point

@@ -8,6 +8,7 @@ allowed; the CLI turns it into exit code 2 before anything is written.
 
 from __future__ import annotations
 
+import dataclasses
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
@@ -165,16 +166,21 @@ class Params(_Section):
             self.detector(name)
         for name in self.anomaly.injectors:
             self.injector(name)
-        self._validate_policy_train()
+        self.policy_train_config()
 
-    def _validate_policy_train(self) -> None:
-        from oodrl.policies.train import TrainConfig
+    def policy_train_config(self):
+        """policy.train as the trainer's typed settings (unknown keys refused)."""
+        from oodrl.policies.settings import TrainConfig
 
+        allowed = {f.name for f in dataclasses.fields(TrainConfig)}
+        for key in self.policy.train:
+            if key not in allowed:
+                raise ConfigError(
+                    f"policy.train.{key}: unknown key. Allowed: {', '.join(sorted(allowed))}."
+                )
         try:
-            TrainConfig.from_params(self.policy.train)
-        except OodrlError as error:
-            raise ConfigError(f"policy.train: {error}") from None
-        except TypeError as error:
+            return TrainConfig(**self.policy.train)
+        except (TypeError, ValueError) as error:
             raise ConfigError(f"policy.train: {error}") from None
 
 

@@ -73,10 +73,7 @@ class Registry:
         if ":" in name:
             return import_path(name)
         if name not in self._loaded:
-            obj = import_path(self.path(name))
-            if isinstance(obj, type) and not getattr(obj, "name", None):
-                obj.name = name
-            self._loaded[name] = obj
+            self._loaded[name] = import_path(self.path(name))
         return self._loaded[name]
 
     def __contains__(self, name: str) -> bool:

@@ -2,7 +2,7 @@
 
 Score stores hold, per group, `scores` (N, T) float64 and, for perturbed sets, the `labels`
 (N, T) bool they are judged against; the root attributes hold the detector's threshold,
-the detector and injector names, the mode, onset and offset. Groups: `clean` in
+the detector and injector names, the mode and the headline AnomalySpec. Groups: `clean` in
 `<detector>/eval.zarr`; `headline` and one `severity_<σ>` per sweep severity in
 `<detector>/<injector>.zarr`.
 """
@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from oodrl.config import Params
 from oodrl.core.trajectory import TrajectorySet
 from oodrl.errors import DetectorError
 from oodrl.stages.common import load_detector
@@ -35,29 +34,20 @@ def _scores(detector, name: str, tset: TrajectorySet, condition: str) -> np.ndar
     return np.stack([o.scores for o in outputs])
 
 
-def _root_attrs(params: Params, detector, name: str) -> dict:
-    return {
-        "detector": name,
-        "threshold": float(detector.threshold_),
-        "onset": params.env.resolved_onset,
-        "offset": params.anomaly.offset,
-        "T": params.env.T,
-    }
+def _root_attrs(detector, name: str) -> dict:
+    # Onset, offset and severity come from the scored stores' specs, not from params, so a
+    # score stage depends on no params key: only its detector and its data.
+    return {"detector": name, "threshold": float(detector.threshold_)}
 
 
-def score_clean(
-    params: Params, detector_name: str, detector_path: Path, eval_path: Path, out: Path
-):
+def score_clean(detector_name: str, detector_path: Path, eval_path: Path, out: Path):
     detector = load_detector(detector_path, stage=f"fit@{detector_name}")
     clean = read_trajectories(eval_path, stage="collect_eval")
     scores = _scores(detector, detector_name, clean, "the clean evaluation set")
-    write_scores(
-        out, {CLEAN_GROUP: {"scores": scores}}, _root_attrs(params, detector, detector_name)
-    )
+    write_scores(out, {CLEAN_GROUP: {"scores": scores}}, _root_attrs(detector, detector_name))
 
 
 def score_injector(
-    params: Params,
     detector_name: str,
     injector_name: str,
     detector_path: Path,
@@ -78,10 +68,10 @@ def score_injector(
             "labels": tset.labels,
         }
     attrs = {
-        **_root_attrs(params, detector, detector_name),
+        **_root_attrs(detector, detector_name),
         "injector": injector_name,
         "mode": headline.attrs["mode"],
-        "severity": headline.attrs["spec"]["severity"],
+        "spec": headline.attrs["spec"],
         "severities": sorted(sweep),
     }
     write_scores(out, groups, attrs)

@@ -1,0 +1,3 @@
+from oodrl.cli import main
+
+main()

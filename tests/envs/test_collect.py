@@ -1,0 +1,83 @@
+"""LunarLander adapter and batched collector: deployment streams, determinism, fault hooks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from oodrl.core.injector import Fault
+from oodrl.envs.collect import BLOCK_SIZE, collect, episode_seed
+from oodrl.envs.lunar_lander import HeuristicPolicy, LunarLanderAdapter
+
+FIELDS = ("states", "actions", "rewards", "next_states", "dones", "executed_actions")
+
+
+def _equal(a, b) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in FIELDS)
+
+
+def test_deployment_stream_semantics(heuristic_clean):
+    tset = heuristic_clean
+    assert tset.states.shape == (8, 300, 8)
+    assert tset.dones.any(), "heuristic episodes end inside 300 steps for some seeds"
+    for i, t in zip(*np.nonzero(tset.dones[:, :-1]), strict=True):
+        # After an episode end the next state is a fresh reset, not the terminal observation.
+        assert not np.array_equal(tset.states[i, t + 1], tset.next_states[i, t])
+        assert tset.episode_index[i, t + 1] == tset.episode_index[i, t] + 1
+    continuing = ~tset.dones[:, :-1]
+    np.testing.assert_array_equal(
+        tset.states[:, 1:][continuing], tset.next_states[:, :-1][continuing]
+    )
+
+
+def test_same_seed_same_trajectory_for_any_worker_count():
+    seeds = range(300, 300 + BLOCK_SIZE + 3)
+    adapter, policy = LunarLanderAdapter(), HeuristicPolicy()
+    one = collect(adapter, policy, seeds, 60)
+    two = collect(adapter, policy, seeds, 60, workers=2)
+    again = collect(adapter, policy, seeds, 60)
+    assert _equal(one, two) and _equal(one, again)
+
+
+def test_episode_seeds_do_not_collide_with_other_streams():
+    assert episode_seed(5, 0) == 5
+    derived = {episode_seed(s, k) for s in range(50) for k in range(1, 5)}
+    assert not derived & set(range(50))
+
+
+def test_write_back_reads_back_exactly():
+    adapter = LunarLanderAdapter()
+    env = adapter.make()
+    env.reset(seed=7)
+    for _ in range(20):
+        obs, *_ = env.step(2)
+    handle = adapter.handle(env)
+    np.testing.assert_array_equal(handle.observation(), obs)
+    target = obs.copy()
+    target[:6] += np.array([0.05, -0.02, 0.1, 0.1, 0.05, -0.2], np.float32)
+    np.testing.assert_allclose(handle.write_observation(target), target, atol=1e-6)
+    before = [(leg.position.x, leg.position.y) for leg in env.unwrapped.legs]
+    after_step, *_ = env.step(0)
+    assert np.isfinite(after_step).all()
+    assert before != [(leg.position.x, leg.position.y) for leg in env.unwrapped.legs]
+
+
+class _RecordingFault(Fault):
+    def __init__(self):
+        self.steps = []
+
+    def executed_action(self, t, commanded):
+        self.steps.append(t)
+        return np.int64(0)
+
+
+def test_fault_hooks_run_on_labelled_steps_only():
+    labels = np.zeros(40, bool)
+    labels[25:] = True
+    faults = [_RecordingFault() for _ in range(2)]
+    adapter, policy = LunarLanderAdapter(), HeuristicPolicy()
+    clean = collect(adapter, policy, [1, 2], 40)
+    faulty = collect(adapter, policy, [1, 2], 40, labels=labels, faults=faults)
+    assert faults[0].steps == list(range(25, 40))
+    np.testing.assert_array_equal(faulty.states[:, :26], clean.states[:, :26])
+    assert (faulty.executed_actions[:, 25:] == 0).all()
+    np.testing.assert_array_equal(faulty.actions[:, 25], clean.actions[:, 25])

@@ -1,0 +1,156 @@
+"""params.yaml validation: every bad edit is one line naming the key, exit code 2."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from oodrl.cli import app
+from oodrl.config import load_params, parse_params
+from oodrl.errors import ConfigError
+
+
+def test_default_params_are_valid(default_params):
+    params = parse_params(default_params)
+    assert params.env.resolved_onset == 166
+    assert params.data.n_calibration == 6
+    assert params.injector_severity("gaussian_state_noise") == params.anomaly.severity
+
+
+def _set(path: str, value):
+    def edit(p):
+        *parents, leaf = path.split(".")
+        for key in parents:
+            p = p[key]
+        p[leaf] = value
+
+    return edit
+
+
+def _delete(path: str):
+    def edit(p):
+        *parents, leaf = path.split(".")
+        for key in parents:
+            p = p[key]
+        del p[leaf]
+
+    return edit
+
+
+BAD = [
+    ("unknown top-level key", _set("sedd", 1), "sedd: unknown key"),
+    ("unknown nested key", _set("env.horizon", 3), "env.horizon: unknown key"),
+    ("wrong type", _set("env.T", "500"), "env.T: Input should be a valid integer"),
+    ("negative seed", _set("seed", -1), "seed: Input should be greater than or equal to 0"),
+    ("severity above 1", _set("anomaly.severity", 1.5), "anomaly.severity"),
+    ("onset at T", _set("env.onset", 500), "env.onset: must be in [1, T=500)"),
+    ("onset zero", _set("env.onset", 0), "env.onset: must be in [1, T=500)"),
+    ("n_id below 2", _set("data.n_id", 1), "data.n_id"),
+    ("negative n_ood", _set("data.n_ood", -3), "data.n_ood"),
+    ("unsorted sweep", _set("anomaly.sweep", [0.4, 0.2]), "anomaly.sweep: must be strictly"),
+    ("sweep out of range", _set("anomaly.sweep", [0.2, 1.2]), "anomaly.sweep: every severity"),
+    ("empty sweep", _set("anomaly.sweep", []), "anomaly.sweep"),
+    ("calibration fraction 1", _set("data.calibration_fraction", 1.0), "calibration_fraction"),
+    ("unknown policy mode", _set("policy.mode", "eps"), "policy.mode"),
+    (
+        "unknown detector",
+        _set("benchmark.detectors", ["kde_densty"]),
+        "benchmark.detectors: 'kde_densty' has no parameter block",
+    ),
+    (
+        "unknown component class",
+        _set("detectors.kde_densty", {}),
+        "detectors.kde_densty: Unknown detector 'kde_densty'. Did you mean 'kde_density'?",
+    ),
+    (
+        "bad plugin path",
+        _set("detectors.mine", {"class": "no_such_module_xyz:Detector"}),
+        "detectors.mine: Cannot import module 'no_such_module_xyz'",
+    ),
+    (
+        "unknown detector parameter",
+        _set("detectors.kde_density.bandwith", 0.3),
+        "detectors.kde_density: KdeDensity has no parameter 'bandwith'",
+    ),
+    (
+        "injector severity above 1",
+        _set("anomaly.injectors.gaussian_state_noise.severity", 2.0),
+        "anomaly.injectors.gaussian_state_noise: The 'severity' parameter",
+    ),
+    (
+        "max_delay below 1",
+        _set("anomaly.injectors.observation_delay.max_delay", 0),
+        "anomaly.injectors.observation_delay: The 'max_delay' parameter",
+    ),
+    (
+        "ramp_steps below 1",
+        _set("anomaly.injectors.gradual_drift.ramp_steps", 0),
+        "anomaly.injectors.gradual_drift: The 'ramp_steps' parameter",
+    ),
+    (
+        "negative threshold percentile",
+        _set("detectors.cusum.threshold_percentile", -5.0),
+        "detectors.cusum: The 'threshold_percentile' parameter",
+    ),
+    (
+        "unknown threshold rule",
+        _set("detectors.pedm.threshold_rule", "mean"),
+        "detectors.pedm: The 'threshold_rule' parameter",
+    ),
+    ("missing injector block", _delete("anomaly.injectors.regime_switch"), "benchmark.injectors"),
+    ("negative workers", _set("executor.workers", -1), "executor.workers"),
+    ("offset before onset", _set("anomaly.offset", 100), "anomaly.offset"),
+    ("unknown policy.train key", _set("policy.train.learning_rate", 0.1), "policy.train"),
+]
+
+
+@pytest.mark.parametrize(("case", "edit", "message"), BAD, ids=[b[0] for b in BAD])
+def test_bad_params_are_one_line_errors(default_params, case, edit, message):
+    edit(default_params)
+    with pytest.raises(ConfigError) as info:
+        parse_params(default_params, "params.yaml")
+    text = str(info.value)
+    assert "\n" not in text
+    assert text.startswith("params.yaml: ")
+    assert message in text
+
+
+def test_check_params_cli_exit_codes(tmp_path, default_params):
+    good = tmp_path / "good.yaml"
+    good.write_text(yaml.safe_dump(default_params))
+    runner = CliRunner()
+    result = runner.invoke(app, ["check-params", str(good)])
+    assert result.exit_code == 0, result.output
+    assert "ok (8 detectors, 9 injectors" in result.output
+
+    default_params["anomaly"]["severity"] = -0.1
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(default_params))
+    result = runner.invoke(app, ["check-params", str(bad)])
+    assert result.exit_code == 2
+    assert result.output.count("\n") == 1 and "anomaly.severity" in result.output
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match="params file not found"):
+        load_params(tmp_path / "absent.yaml")
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("seed: [1,\n")
+    with pytest.raises(ConfigError, match="not valid YAML at line"):
+        load_params(broken)
+
+
+def test_check_params_subprocess_has_no_traceback(tmp_path, default_params):
+    default_params["env"]["T"] = 1
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(default_params))
+    done = subprocess.run(
+        [sys.executable, "-m", "oodrl", "check-params", str(bad)], capture_output=True, text=True
+    )
+    assert done.returncode == 2
+    assert done.stderr.strip().count("\n") == 0
+    assert "env.T" in done.stderr and "Traceback" not in done.stderr
