@@ -236,5 +236,54 @@ def score(
         stages.score_injector(detector, injector, model, ood, sweep, out)
 
 
+@command("metrics")
+def metrics(
+    scores: Annotated[Path, PathOption()],
+    results: Annotated[Path, PathOption()],
+    sweep_results: Annotated[Path, PathOption()],
+    metrics_file: Annotated[Path, PathOption()],
+    tables: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage metrics: per-episode metrics, bootstrap CIs, null baselines, tables."""
+    from oodrl.stages.metrics import run_metrics
+
+    config = _load(params)
+    with _stage("metrics"):
+        run_metrics(config, scores, results, sweep_results, metrics_file, tables)
+
+
+@command("render")
+def render(
+    results: Annotated[Path, PathOption()],
+    sweep_results: Annotated[Path, PathOption()],
+    scores: Annotated[Path, PathOption()],
+    policy: Annotated[Path, PathOption()],
+    figures: Annotated[Path, PathOption()],
+    plots: Annotated[Path, PathOption()],
+    headline: Annotated[Path, PathOption()],
+    meta: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage render: figures, DVC plot data, headline table, run_meta.yaml."""
+    from oodrl.stages.render import run_render
+
+    config = _load(params)
+    with _stage("render"):
+        run_render(config, results, sweep_results, scores, policy, figures, plots, headline, meta)
+
+
+@command("readme-table")
+def readme_table(
+    headline: Annotated[Path, typer.Argument()] = Path("reports/headline.md"),
+    readme: Annotated[Path, typer.Option()] = Path("README.md"),
+) -> None:
+    """Copy the pipeline's headline table into README.md between its headline markers."""
+    from oodrl.report.readme import insert_headline
+
+    insert_headline(readme, headline)
+    typer.echo(f"{readme}: headline table updated from {headline}")
+
+
 def main() -> None:  # pragma: no cover - console entry point
     sys.exit(app())

@@ -1,0 +1,127 @@
+"""The metrics stage: score stores -> results.yaml, sweep_results.yaml, metrics.json, tables.md.
+
+It reads the score stores dvc.yaml's score stages write, laid out as
+`<scores>/<detector>/eval.zarr` and `<scores>/<detector>/<injector>.zarr`.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from oodrl.config import Params
+from oodrl.core.spec import make_labels
+from oodrl.stages.common import atomic_write_text, progress_bar
+from oodrl.stages.score import CLEAN_GROUP, HEADLINE_GROUP
+from oodrl.store import read_scores, severity_key
+
+
+def score_store(scores_dir: Path, detector: str, scored_set: str) -> Path:
+    """Where a score stage writes `detector`'s scores of `scored_set` ('eval' or an injector)."""
+    return Path(scores_dir) / detector / f"{scored_set}.zarr"
+
+
+def _settings(params: Params):
+    from oodrl.metrics.aggregate import MetricSettings
+
+    m = params.metrics
+    return MetricSettings(
+        n_boot=m.n_boot,
+        ci=m.ci,
+        tpr_target=m.tpr_target,
+        temporal_buffer=m.temporal_buffer,
+        seed=params.seed,
+    )
+
+
+def _summary(group: dict, clean: np.ndarray, threshold: float, spec: dict, settings, detector):
+    """Mean, std and CI of every metric for one perturbed set against its matched clean set."""
+    from oodrl.metrics.aggregate import episode_metrics, summarise
+
+    per_episode = episode_metrics(
+        group["scores"], clean, group["labels"], threshold,
+        spec["onset"], spec["offset"], settings, detector,
+    )  # fmt: skip
+    return summarise(per_episode, settings)
+
+
+def _null_metrics(params: Params, clean: np.ndarray, threshold: float, settings, detector):
+    """The null baseline: clean scores judged against the counterfactual labels."""
+    from oodrl.metrics.aggregate import null_episode_metrics, summarise
+
+    T, onset, offset = params.env.T, params.env.resolved_onset, params.anomaly.offset
+    labels = np.tile(make_labels(T, onset, offset), (clean.shape[0], 1))
+    per_episode = null_episode_metrics(clean, labels, threshold, onset, offset, settings, detector)
+    return summarise(per_episode, settings)
+
+
+def compute_results(params: Params, scores_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
+    """Every (detector, anomaly) headline record, the null baselines, and the sweep.
+
+    The clean evaluation set is the matched counterpart of both execution modes (online runs
+    re-use its seeds), so each mode's null baseline is computed on the same clean scores.
+    """
+    settings = _settings(params)
+    detectors, injectors = params.benchmark.detectors, params.benchmark.injectors
+    records: list[dict[str, Any]] = []
+    sweep: dict[str, dict[float, dict[str, Any]]] = {name: {} for name in injectors}
+    modes: dict[str, str] = {}
+    with progress_bar(len(detectors) * len(injectors), "metrics", params.executor.progress) as bar:
+        for detector in detectors:
+            eval_path = score_store(scores_dir, detector, "eval")
+            clean_groups, clean_attrs = read_scores(eval_path, stage=f"score_clean@{detector}")
+            clean = clean_groups[CLEAN_GROUP]["scores"]
+            threshold = float(clean_attrs["threshold"])
+            for injector in injectors:
+                path = score_store(scores_dir, detector, injector)
+                groups, attrs = read_scores(path, stage=f"score@{detector}-{injector}")
+                spec, modes[injector] = attrs["spec"], attrs["mode"]
+                headline = _summary(
+                    groups[HEADLINE_GROUP], clean, threshold, spec, settings, detector
+                )
+                records.append({
+                    "kind": "anomaly", "detector": detector, "anomaly": injector,
+                    "mode": attrs["mode"], "severity": spec["severity"], "metrics": headline,
+                })  # fmt: skip
+                for severity in attrs["severities"]:
+                    group = groups[severity_key(severity)]
+                    sweep[injector].setdefault(float(severity), {})[detector] = _summary(
+                        group, clean, threshold, {**spec, "severity": severity}, settings, detector
+                    )
+                bar.update()
+            null = _null_metrics(params, clean, threshold, settings, detector)
+            records.extend(
+                {"kind": "null", "detector": detector, "anomaly": "null", "mode": mode,
+                 "severity": None, "metrics": null}
+                for mode in sorted(set(modes.values()))
+            )  # fmt: skip
+    records.sort(key=lambda r: (r["kind"], r["detector"], r["anomaly"], r["mode"]))
+    return {"records": records}, {"modes": modes, "sweep": sweep}
+
+
+def _yaml(data: Any) -> str:
+    import yaml
+
+    return yaml.safe_dump(data, sort_keys=True, default_flow_style=False, width=100)
+
+
+def run_metrics(
+    params: Params,
+    scores_dir: Path,
+    results_path: Path,
+    sweep_path: Path,
+    metrics_path: Path,
+    tables_path: Path,
+) -> None:
+    from oodrl.report.tables import metrics_json, render_tables
+
+    results, sweep = compute_results(params, scores_dir)
+    atomic_write_text(results_path, _yaml(results))
+    atomic_write_text(sweep_path, _yaml(sweep))
+    atomic_write_text(
+        metrics_path, json.dumps(metrics_json(results, sweep), indent=2, sort_keys=True) + "\n"
+    )
+    atomic_write_text(tables_path, render_tables(results, sweep))

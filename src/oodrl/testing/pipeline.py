@@ -1,0 +1,85 @@
+"""Run the real DVC pipeline in a throw-away copy of the project (tests, CI, benchmarks).
+
+The copy gets the project's tracked and untracked-not-ignored files (so pipeline outputs and
+caches stay behind), its own `git init` and commit, and optionally other params. The
+committed dvc.lock comes along, so a train_policy stage whose params are unchanged is skipped.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+def project_files(root: Path) -> list[str]:
+    listed = subprocess.run(
+        ["git", "ls-files", "--cached", "--others", "--exclude-standard", "-z"],
+        cwd=root,
+        check=True,
+        capture_output=True,
+    ).stdout.decode()
+    return sorted(f for f in listed.split("\0") if f and (root / f).is_file())
+
+
+def _environment() -> dict[str, str]:
+    env = dict(os.environ)
+    # Stage commands call `oodrl`: make the running interpreter's scripts win on PATH.
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    env.setdefault("GIT_AUTHOR_NAME", "oodrl")
+    env.setdefault("GIT_AUTHOR_EMAIL", "oodrl@localhost")
+    env.setdefault("GIT_COMMITTER_NAME", "oodrl")
+    env.setdefault("GIT_COMMITTER_EMAIL", "oodrl@localhost")
+    env["DVC_NO_ANALYTICS"] = "1"
+    return env
+
+
+def run(repo: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    """Run a command in the copy; DVC through the current interpreter."""
+    command = [sys.executable, "-m", "dvc", *args[1:]] if args[0] == "dvc" else list(args)
+    done = subprocess.run(command, cwd=repo, env=_environment(), capture_output=True, text=True)
+    if check and done.returncode != 0:
+        raise RuntimeError(
+            f"`{' '.join(args)}` failed with exit code {done.returncode}:\n"
+            f"{done.stdout[-4000:]}\n{done.stderr[-4000:]}"
+        )
+    return done
+
+
+def copy_project(source: Path, dest: Path, params: dict[str, Any] | None = None) -> Path:
+    """A fresh git + DVC repository holding the project, with `params` as params.yaml."""
+    for name in project_files(source):
+        target = dest / name
+        target.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(source / name, target)
+    if params is not None:
+        (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    run(dest, "git", "init", "-q")
+    run(dest, "git", "add", "-A")
+    run(dest, "git", "commit", "-q", "-m", "copy of the project")
+    return dest
+
+
+def repro(repo: Path, *args: str) -> list[str]:
+    """`dvc repro`; returns the names of the stages that ran."""
+    done = run(repo, "dvc", "repro", *args)
+    return sorted(
+        line.split("'")[1]
+        for line in done.stdout.splitlines()
+        if line.startswith("Running stage '")
+    )
+
+
+def lock_hashes(repo: Path) -> dict[str, str]:
+    """Output path -> md5 recorded in dvc.lock (the pipeline's content addresses)."""
+    lock = yaml.safe_load((repo / "dvc.lock").read_text())
+    hashes = {}
+    for stage in lock["stages"].values():
+        for out in stage.get("outs", []):
+            hashes[out["path"]] = out["md5"]
+    return hashes
