@@ -101,6 +101,12 @@ BAD = [
         _set("detectors.pedm.threshold_rule", "mean"),
         "detectors.pedm: The 'threshold_rule' parameter",
     ),
+    (
+        "target action the env lacks",
+        _set("anomaly.injectors.action_conditioned_dynamics.target_action", 4),
+        "anomaly.injectors.action_conditioned_dynamics: The 'target_action' parameter",
+    ),
+    ("unknown env", _set("env.id", "LunarLander-v9"), "env.id: Unknown environment"),
     ("missing injector block", _delete("anomaly.injectors.regime_switch"), "benchmark.injectors"),
     ("negative workers", _set("executor.workers", -1), "executor.workers"),
     ("offset before onset", _set("anomaly.offset", 100), "anomaly.offset"),

@@ -162,10 +162,20 @@ class Params(_Section):
         return self.anomaly.severity if own is None else float(own)
 
     def validate_components(self) -> None:
+        from oodrl.envs import ENVIRONMENTS
+
+        try:
+            adapter = ENVIRONMENTS.get(self.env.id)
+        except OodrlError as error:
+            raise ConfigError(f"env.id: {error}") from None
         for name in self.detectors:
             self.detector(name)
         for name in self.anomaly.injectors:
-            self.injector(name)
+            injector = self.injector(name)
+            try:
+                injector.check_adapter(adapter)
+            except ConfigError as error:
+                raise ConfigError(f"anomaly.injectors.{name}: {error}") from None
         self.policy_train_config()
 
     def policy_train_config(self):

@@ -35,6 +35,13 @@ class BaseAnomalyInjector(Component):
     def injector_name(self) -> str:
         return self.name or type(self).__name__
 
+    def check_adapter(self, adapter) -> None:
+        """Refuse parameters the environment cannot honour (e.g. an action it lacks).
+
+        Called when params are validated and before collection; `adapter` may be the adapter
+        class (its `env_id`, `state_dim`, `n_actions` are class attributes).
+        """
+
     def spec(self, severity: float, onset: int, offset: int | None = None) -> AnomalySpec:
         """The AnomalySpec of this injector at a severity (its own parameters recorded)."""
         params = {k: v for k, v in self.get_params().items() if k != "severity"}

@@ -1,0 +1,151 @@
+import pickle
+
+import numpy as np
+import pytest
+
+from oodrl.core.injector import Fault
+from oodrl.envs.collect import collect
+from oodrl.envs.lunar_lander import HeuristicPolicy, LunarLanderAdapter
+from oodrl.errors import ConfigError
+from oodrl.injectors import INJECTORS
+from oodrl.injectors.apply import collect_online, injector_rng
+
+ONLINE = [name for name in INJECTORS.names() if INJECTORS.get(name).mode == "online"]
+DYNAMICS = ["dynamics_scaling", "action_conditioned_dynamics", "gradual_drift"]
+GRID = [0.1, 0.2, 0.4, 0.6, 0.8]
+SEEDS = list(range(10000, 10004))
+T, ONSET = 300, 100
+FIELDS = ("states", "actions", "rewards", "next_states", "dones", "executed_actions")
+
+ADAPTER, POLICY = LunarLanderAdapter(), HeuristicPolicy()
+
+
+@pytest.fixture(scope="module")
+def clean():
+    return collect(ADAPTER, POLICY, SEEDS, T)
+
+
+def make(name: str, **params):
+    return INJECTORS.get(name).from_params(params)
+
+
+def run(injector, severity: float, seeds=SEEDS, horizon: int = T, onset: int = ONSET, seed=0):
+    spec = injector.spec(severity, onset)
+    return collect_online(injector, ADAPTER, POLICY, seeds, horizon, spec, seed, policy_seed=0)
+
+
+@pytest.mark.parametrize("name", ONLINE)
+def test_severity_zero_reproduces_the_clean_streams(name, clean):
+    perturbed = run(make(name), 0.0)
+    for field in FIELDS:
+        np.testing.assert_array_equal(getattr(perturbed, field), getattr(clean, field))
+
+
+@pytest.mark.parametrize("severity", [0.3, 1.0])
+@pytest.mark.parametrize("name", ONLINE)
+def test_steps_before_the_onset_are_the_clean_steps(name, severity, clean):
+    perturbed = run(make(name), severity)
+    for field in FIELDS:
+        np.testing.assert_array_equal(
+            getattr(perturbed, field)[:, :ONSET], getattr(clean, field)[:, :ONSET]
+        )
+    assert not np.array_equal(perturbed.states, clean.states)
+    assert perturbed.attrs["spec"]["severity"] == severity and perturbed.attrs["mode"] == "online"
+    assert perturbed.labels[:, ONSET:].all() and not perturbed.labels[:, :ONSET].any()
+
+
+@pytest.mark.parametrize("name", ONLINE)
+def test_divergence_grows_with_severity(name):
+    # A short horizon with no episode end: the streams stay comparable step by step.
+    seeds, horizon, onset = list(range(4)), 120, 40
+    reference = collect(ADAPTER, POLICY, seeds, horizon)
+    divergences = []
+    for severity in GRID:
+        perturbed = run(make(name), severity, seeds, horizon, onset)
+        distance = np.linalg.norm(perturbed.states - reference.states, axis=-1)
+        divergences.append(distance[:, onset:].mean())
+    assert np.all(np.diff(divergences) > 0), divergences
+
+
+@pytest.mark.parametrize("name", ONLINE)
+def test_same_parameters_give_identical_streams(name):
+    injector = make(name)
+    first, second = run(injector, 0.5, horizon=150), run(injector, 0.5, horizon=150)
+    for field in FIELDS:
+        np.testing.assert_array_equal(getattr(first, field), getattr(second, field))
+    fault = injector.fault(injector.spec(0.5, ONSET), injector_rng(0, name, 0))
+    assert isinstance(pickle.loads(pickle.dumps(fault)), Fault)  # faults go to worker processes
+
+
+def test_stuck_actuator_at_full_severity_always_executes_the_held_action(clean):
+    perturbed = run(make("stuck_actuator"), 1.0)
+    held = perturbed.actions[:, ONSET]
+    assert np.all(perturbed.executed_actions[:, ONSET:] == held[:, None])
+    for j in range(len(SEEDS)):  # `actions` records what the policy commanded
+        np.testing.assert_array_equal(perturbed.actions[j], POLICY.act(perturbed.states[j]))
+    assert np.any(perturbed.actions[:, ONSET:] != held[:, None])
+
+
+def test_stuck_actuator_holds_with_probability_severity():
+    perturbed = run(make("stuck_actuator"), 0.5)
+    commanded, executed = perturbed.actions[:, ONSET:], perturbed.executed_actions[:, ONSET:]
+    held = np.broadcast_to(perturbed.actions[:, ONSET, None], commanded.shape)
+    assert np.all((executed == commanded) | (executed == held))
+    informative = commanded != held  # steps where holding makes a difference
+    assert abs((executed == held)[informative].mean() - 0.5) < 0.1
+
+
+class Recording(Fault):
+    """Wraps a fault and records each after_step call: (t, previous, simulator's own, returned)."""
+
+    def __init__(self, inner: Fault) -> None:
+        self.inner = inner
+        self.calls: list[tuple[int, np.ndarray, np.ndarray, int, np.ndarray]] = []
+
+    def executed_action(self, t, commanded):
+        return self.inner.executed_action(t, commanded)
+
+    def after_step(self, t, previous, observation, commanded, sim):
+        returned = self.inner.after_step(t, previous, observation, commanded, sim)
+        self.calls.append(
+            (t, previous.copy(), observation.copy(), int(commanded), np.array(returned))
+        )
+        return returned
+
+
+def expected_factor(name: str, severity: float, t: int, commanded: int) -> float:
+    full = 1.0 + 1.5 * severity
+    if name == "action_conditioned_dynamics":
+        return full if commanded == 2 else 1.0
+    if name == "gradual_drift":
+        return 1.0 + (full - 1.0) * min(1.0, (t - ONSET) / 200)
+    return full
+
+
+@pytest.mark.parametrize("severity", [0.5, 1.0])
+@pytest.mark.parametrize("name", DYNAMICS)
+def test_written_increments_are_the_simulators_increments_times_the_factor(name, severity):
+    injector = make(name)
+    spec = injector.spec(severity, ONSET)
+    faults = [Recording(injector.fault(spec, injector_rng(0, name, j))) for j in range(len(SEEDS))]
+    tset = collect(ADAPTER, POLICY, SEEDS, T, labels=spec.labels(T), faults=faults)
+    assert tset.dones[:, ONSET:-1].any()  # the checks below cover steps right after a reset
+    for j, fault in enumerate(faults):
+        assert [call[0] for call in fault.calls] == list(range(ONSET, T))
+        for t, previous, own, commanded, returned in fault.calls:
+            # `previous` is what the policy acted on: after a reset, the reset observation.
+            np.testing.assert_array_equal(previous, tset.states[j, t])
+            np.testing.assert_array_equal(returned, tset.next_states[j, t])
+            factor = expected_factor(name, severity, t, commanded)
+            np.testing.assert_allclose(
+                returned[:6] - previous[:6], factor * (own[:6] - previous[:6]), atol=2e-6
+            )
+            np.testing.assert_array_equal(returned[6:], own[6:])  # leg contacts: the simulator's
+            if factor == 1.0:
+                np.testing.assert_array_equal(returned, own)
+
+
+def test_action_conditioned_dynamics_checks_the_target_action_against_the_environment():
+    injector = make("action_conditioned_dynamics", target_action=4)
+    with pytest.raises(ConfigError, match=r"target_action.*\[0, 4\)"):
+        run(injector, 0.5)
