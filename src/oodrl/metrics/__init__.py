@@ -1,0 +1,42 @@
+"""Metrics of SPEC §6, registered by name.
+
+Each name maps to a `oodrl.metrics.aggregate.Metric` (per-episode `compute` and a
+`higher_is_better` flag), imported on first use. The numeric building blocks live in
+`ranking` (AUROC, AUPRC, FPR at a TPR target, temporal AUROC), `alarms` (precision, recall,
+delay, segments) and `bootstrap`; `aggregate` is the API the metrics stage calls. Plugins add
+a metric through the `oodrl.metrics` entry-point group.
+"""
+
+from oodrl.registry import Registry
+
+METRICS = Registry("metric")
+
+for _name in (
+    "adjusted_auroc",
+    "clean_alarm_rate",
+    "detection_delay",
+    "f1",
+    "lift_over_null",
+    "matched_auprc",
+    "matched_auroc",
+    "matched_fpr95",
+    "null_auprc",
+    "null_auroc",
+    "precision",
+    "raw_auprc",
+    "raw_auroc",
+    "recall",
+    "segment_precision",
+    "segment_recall",
+    "temporal_auroc",
+):
+    METRICS.register(_name, f"oodrl.metrics.aggregate:{_name.upper()}")
+del _name
+
+
+def higher_is_better(name: str) -> bool:
+    """Whether a larger value of the registered metric `name` is better."""
+    return bool(METRICS.get(name).higher_is_better)
+
+
+__all__ = ["METRICS", "higher_is_better"]

@@ -1,0 +1,224 @@
+"""Threshold-free ranking metrics of SPEC §6: AUROC, average precision, FPR at a TPR target and
+the range-based temporal AUROC. Score direction: larger = more anomalous.
+
+Every function works on rows: `scores` (N, n) float64, one row per episode, and boolean masks
+`positive` / `negative` (N, n) that say which entries are positives and which negatives; an entry
+in neither mask is ignored. That one shape covers both comparisons of SPEC §6:
+
+* whole-trajectory metrics (raw, null): `scores = z̃`, `positive = y`, `negative = ~y`;
+* matched metrics: `scores = [z̃ | z]`, `positive = [y | 0]`, `negative = [0 | y]`, i.e. the
+  perturbed scores on the anomaly steps P against the clean scores on the same steps.
+
+Scores must be finite (the stage-facing API in `oodrl.metrics.aggregate` checks that and names
+the detector). Degenerate rows get a defined value instead of an error: see each function.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from oodrl.errors import ContractError
+
+
+def _rows(
+    scores: np.ndarray, positive: np.ndarray, negative: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N, n) float64 scores and bool masks (1-D = one row); negative defaults to ~positive."""
+    scores = np.atleast_2d(np.asarray(scores, dtype=np.float64))
+    positive = np.atleast_2d(np.asarray(positive, dtype=bool))
+    negative = ~positive if negative is None else np.atleast_2d(np.asarray(negative, dtype=bool))
+    if scores.ndim != 2 or positive.shape != scores.shape or negative.shape != scores.shape:
+        raise ContractError(
+            f"scores and masks must have one shape (N, n); got scores {scores.shape}, "
+            f"positive {positive.shape}, negative {negative.shape}."
+        )
+    if (positive & negative).any():
+        raise ContractError("An entry cannot be both a positive and a negative.")
+    return scores, positive, negative
+
+
+def _tie_bounds(sorted_scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """First and last index of the group of equal values each entry of a row-sorted array is in."""
+    n = sorted_scores.shape[1]
+    index = np.broadcast_to(np.arange(n), sorted_scores.shape)
+    starts = np.ones(sorted_scores.shape, dtype=bool)
+    starts[:, 1:] = sorted_scores[:, 1:] != sorted_scores[:, :-1]
+    ends = np.ones(sorted_scores.shape, dtype=bool)
+    ends[:, :-1] = starts[:, 1:]
+    first = np.maximum.accumulate(np.where(starts, index, 0), axis=1)
+    # The last index of a group is the first index of the same group read backwards.
+    last = n - 1 - np.maximum.accumulate(np.where(ends[:, ::-1], index, 0), axis=1)[:, ::-1]
+    return first, last
+
+
+def _sorted_rows(
+    scores: np.ndarray, positive: np.ndarray, negative: np.ndarray, *, descending: bool
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    order = np.argsort(-scores if descending else scores, axis=1, kind="stable")
+    return (
+        np.take_along_axis(scores, order, axis=1),
+        np.take_along_axis(positive, order, axis=1),
+        np.take_along_axis(negative, order, axis=1),
+    )
+
+
+def auroc_rows(
+    scores: np.ndarray, positive: np.ndarray, negative: np.ndarray | None = None
+) -> np.ndarray:
+    """AUROC per row by the rank (Mann-Whitney) formulation, ties counting ½.
+
+    AUROC = Σ_{i∈pos} (#{j∈neg : s_j < s_i} + ½ #{j∈neg : s_j = s_i}) / (n_pos · n_neg),
+    equal to scikit-learn's `roc_auc_score`. Rows without positives or without negatives
+    (single-class labels) get 0.5, the value of an uninformative detector; constant scores
+    give 0.5 by the tie rule.
+    """
+    scores, positive, negative = _rows(scores, positive, negative)
+    s, pos, neg = _sorted_rows(scores, positive, negative, descending=False)
+    first, last = _tie_bounds(s)
+    negatives_through = np.cumsum(neg, axis=1)
+    negatives_below = np.where(
+        first > 0, np.take_along_axis(negatives_through, np.maximum(first - 1, 0), axis=1), 0
+    )
+    negatives_tied = np.take_along_axis(negatives_through, last, axis=1) - negatives_below
+    wins = np.where(pos, negatives_below + 0.5 * negatives_tied, 0.0).sum(axis=1)
+    pairs = pos.sum(axis=1) * neg.sum(axis=1)
+    return np.where(pairs > 0, wins / np.maximum(pairs, 1), 0.5)
+
+
+def average_precision_rows(
+    scores: np.ndarray, positive: np.ndarray, negative: np.ndarray | None = None
+) -> np.ndarray:
+    """Area under the precision-recall curve as average precision, per row.
+
+    AP = Σ_k (R_k − R_{k−1}) · P_k over the distinct scores taken as thresholds from high to low
+    (P_k, R_k the precision and recall of `score ≥ threshold_k`), exactly scikit-learn's
+    `average_precision_score`. Rows without positives get 0.0 (as scikit-learn); constant
+    scores give the positive fraction.
+    """
+    scores, positive, negative = _rows(scores, positive, negative)
+    s, pos, neg = _sorted_rows(scores, positive, negative, descending=True)
+    _, last = _tie_bounds(s)
+    true_through = np.take_along_axis(np.cumsum(pos, axis=1), last, axis=1)
+    false_through = np.take_along_axis(np.cumsum(neg, axis=1), last, axis=1)
+    flagged = true_through + false_through
+    precision = np.where(flagged > 0, true_through / np.maximum(flagged, 1), 0.0)
+    n_pos = pos.sum(axis=1)
+    # Each positive adds 1/n_pos of recall at the threshold of its tie group.
+    return np.where(pos, precision, 0.0).sum(axis=1) / np.maximum(n_pos, 1)
+
+
+def fpr_at_tpr_rows(
+    scores: np.ndarray, positive: np.ndarray, negative: np.ndarray, tpr_target: float = 0.95
+) -> np.ndarray:
+    """False-positive rate at the largest threshold that keeps `tpr_target` of the positives.
+
+    τ = the k-th largest positive score, k = ⌈tpr_target · n_pos⌉ (so ≥ tpr_target of the
+    positives are ≥ τ and no larger τ does that); FPR = #{negatives ≥ τ} / n_neg. Perfect
+    separation gives 0, an uninformative detector ≈ tpr_target. Rows without positives or
+    without negatives get `tpr_target`, the uninformative value.
+    """
+    if not 0.0 < tpr_target <= 1.0:
+        raise ContractError(f"tpr_target must be in (0, 1]; got {tpr_target}.")
+    scores, positive, negative = _rows(scores, positive, negative)
+    n_pos = positive.sum(axis=1)
+    n_neg = negative.sum(axis=1)
+    positives_descending = -np.sort(-np.where(positive, scores, -np.inf), axis=1)
+    # The tolerance keeps float noise (0.95 · 100 = 95.00000000000001) from adding a positive.
+    k = np.maximum(np.ceil(tpr_target * n_pos - 1e-9).astype(np.int64), 1)
+    tau = np.take_along_axis(positives_descending, (k - 1)[:, None], axis=1)
+    false_alarms = (negative & (scores >= tau)).sum(axis=1)
+    fpr = false_alarms / np.maximum(n_neg, 1)
+    return np.where((n_pos > 0) & (n_neg > 0), fpr, tpr_target)
+
+
+def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
+    """AUROC of one score series against boolean labels (see `auroc_rows`)."""
+    return float(auroc_rows(scores, labels)[0])
+
+
+def average_precision(scores: np.ndarray, labels: np.ndarray) -> float:
+    """Average precision of one score series against boolean labels."""
+    return float(average_precision_rows(scores, labels)[0])
+
+
+def label_ranges(labels: np.ndarray) -> list[tuple[int, int]]:
+    """Runs of True in a 1-D boolean array as half-open (start, end) pairs."""
+    padded = np.concatenate(([False], np.asarray(labels, dtype=bool), [False]))
+    edges = np.flatnonzero(padded[1:] != padded[:-1])
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
+
+
+def soft_labels(labels: np.ndarray, buffer: int) -> np.ndarray:
+    """Range labels of Paparrizos et al. (2022) with a buffer of `buffer` steps.
+
+    1 inside every anomaly range; a step d = 1 … ⌊buffer/2⌋ steps before a range's first step
+    or after its last step gets √(1 − d/buffer); contributions of neighbouring ranges add and
+    are capped at 1. (The reference code softens one step fewer after a range than before it;
+    here both sides get ⌊buffer/2⌋ steps.)
+    """
+    labels = np.asarray(labels, dtype=bool)
+    soft = labels.astype(np.float64)
+    half = buffer // 2
+    if half == 0:
+        return soft
+    T = labels.size  # noqa: N806 - the protocol's name for the horizon
+    ramp = np.sqrt(1.0 - np.arange(1, half + 1) / buffer)
+    for start, end in label_ranges(labels):
+        before = np.arange(start - 1, start - half - 1, -1)
+        after = np.arange(end, end + half)
+        soft[before[before >= 0]] += ramp[before >= 0]
+        soft[after[after < T]] += ramp[after < T]
+    return np.minimum(soft, 1.0)
+
+
+def temporal_auroc(scores: np.ndarray, labels: np.ndarray, buffer: int = 10) -> float:
+    """Range-based AUROC (R-AUC) of Paparrizos et al. (2022, "Volume under the surface").
+
+    With ℓ = `soft_labels(labels, buffer)`, P = Σ y, P' = (P + Σ ℓ)/2, N' = T − P', and for each
+    threshold θ (every distinct score, high to low) the prediction p = [s ≥ θ]:
+
+        TP = Σ ℓ·p,   FP = Σ p − TP,
+        TPR(θ) = min(TP / P', 1) · (fraction of the ranges of ℓ > 0 containing a predicted step),
+        FPR(θ) = FP / N'.
+
+    R-AUC is the trapezoidal area under (0, 0), (FPR(θ), TPR(θ)) …, (1, 1). With `buffer = 0`
+    and one anomaly range (the protocol's [t*, offset)) it equals the AUROC. The reference code
+    evaluates 250 sub-sampled thresholds; this one uses every distinct score, so it is exact.
+    Single-class labels and constant scores give 0.5 (the existence factor would otherwise
+    credit a constant detector slightly above chance).
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    labels = np.asarray(labels, dtype=bool)
+    if scores.ndim != 1 or labels.shape != scores.shape:
+        raise ContractError(
+            f"scores and labels must be 1-D of one length; got {scores.shape}, {labels.shape}."
+        )
+    if buffer < 0:
+        raise ContractError(f"buffer must be >= 0; got {buffer}.")
+    soft = soft_labels(labels, buffer)
+    n_positive = labels.sum()
+    positive_mass = (n_positive + soft.sum()) / 2
+    negative_mass = labels.size - positive_mass
+    if n_positive == 0 or negative_mass <= 0 or scores.min() == scores.max():
+        return 0.5
+    order = np.argsort(-scores, kind="stable")
+    s = scores[order]
+    _, last = _tie_bounds(s[None, :])
+    group_end = np.flatnonzero(last[0] == np.arange(s.size))
+    thresholds = s[group_end]
+    true_mass = np.cumsum(soft[order])[group_end]
+    flagged = group_end + 1
+    ranges = label_ranges(soft > 0)
+    range_peaks = np.sort([scores[a:b].max() for a, b in ranges])
+    ranges_found = len(ranges) - np.searchsorted(range_peaks, thresholds, side="left")
+    tpr = np.minimum(true_mass / positive_mass, 1.0) * ranges_found / len(ranges)
+    fpr = (flagged - true_mass) / negative_mass
+    tpr = np.concatenate(([0.0], tpr, [1.0]))
+    fpr = np.concatenate(([0.0], fpr, [1.0]))
+    return float(np.sum(np.diff(fpr) * (tpr[1:] + tpr[:-1]) / 2))
+
+
+def temporal_auroc_rows(scores: np.ndarray, labels: np.ndarray, buffer: int = 10) -> np.ndarray:
+    """`temporal_auroc` of every row of (N, T) scores against (N, T) labels."""
+    scores, labels, _ = _rows(scores, labels, None)
+    return np.array([temporal_auroc(s, y, buffer) for s, y in zip(scores, labels, strict=True)])

@@ -1,0 +1,345 @@
+"""Markdown tables of SPEC §7 from results.yaml and sweep_results.yaml contents.
+
+`results` is the mapping of results.yaml: `{"records": [{kind, detector, anomaly, mode,
+severity, metrics: {name: {mean, std, ci_low, ci_high, n_episodes}}}, ...]}` with `kind`
+"anomaly" or "null". `sweep` is the mapping of sweep_results.yaml: `{"sweep": {injector:
+{severity: {detector: {name: stats}}}}, "modes": {injector: mode}}`. A metric missing from a
+record is shown as "—". Which detector is "best" follows the metric's `higher_is_better`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping, Sequence
+from typing import Any
+
+from oodrl.metrics import higher_is_better
+
+MISSING = "—"
+
+#: Per-detector means (over anomalies) exported to metrics.json for `dvc metrics diff`.
+DETECTOR_METRICS: tuple[str, ...] = (
+    "clean_alarm_rate",
+    "detection_delay",
+    "matched_auprc",
+    "matched_auroc",
+    "matched_fpr95",
+)
+
+LABELS = {
+    "matched_auroc": "matched AUROC",
+    "matched_auprc": "matched AUPRC",
+    "matched_fpr95": "matched FPR95",
+    "detection_delay": "detection delay",
+}
+
+AnomalyKey = tuple[str, str, Any]  # (anomaly, mode, severity)
+
+
+# ---------------------------------------------------------------------------------- record access
+
+
+def anomaly_records(results: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    return [r for r in results.get("records", []) if r.get("kind", "anomaly") == "anomaly"]
+
+
+def null_records(results: Mapping[str, Any]) -> list[Mapping[str, Any]]:
+    return [r for r in results.get("records", []) if r.get("kind") == "null"]
+
+
+def stat(record: Mapping[str, Any], metric: str, field: str = "mean") -> float | None:
+    """One number of one metric of a record; None when the record lacks it."""
+    value = record.get("metrics", {}).get(metric, {}).get(field)
+    return None if value is None else float(value)
+
+
+def anomaly_key(record: Mapping[str, Any]) -> AnomalyKey:
+    return (record["anomaly"], record["mode"], record["severity"])
+
+
+def anomaly_keys(records: Iterable[Mapping[str, Any]]) -> list[AnomalyKey]:
+    """Distinct anomalies, post-hoc ones first, then by name and severity."""
+    keys = {anomaly_key(r) for r in records}
+    return sorted(keys, key=lambda k: (k[1] != "posthoc", k[1], k[0], k[2] or 0.0))
+
+
+def anomaly_labels(keys: Sequence[AnomalyKey]) -> dict[AnomalyKey, str]:
+    """The anomaly name, with mode and σ only where one name occurs more than once."""
+    names = [k[0] for k in keys]
+    return {k: k[0] if names.count(k[0]) == 1 else f"{k[0]} ({k[1]}, σ={k[2]})" for k in keys}
+
+
+def detectors(records: Iterable[Mapping[str, Any]]) -> list[str]:
+    return sorted({r["detector"] for r in records})
+
+
+def mean_over_anomalies(
+    records: Sequence[Mapping[str, Any]], detector: str, metric: str
+) -> float | None:
+    """Mean over anomalies of a detector's per-anomaly means; None if no record has the metric."""
+    values = [stat(r, metric) for r in records if r["detector"] == detector]
+    values = [v for v in values if v is not None]
+    return sum(values) / len(values) if values else None
+
+
+def ranked(
+    records: Iterable[Mapping[str, Any]], metric: str
+) -> list[tuple[float, Mapping[str, Any]]]:
+    """(value, record) best first by the metric's direction; ties broken by detector name."""
+    sign = -1.0 if higher_is_better(metric) else 1.0
+    scored = [(stat(r, metric), r) for r in records]
+    scored = [(v, r) for v, r in scored if v is not None]
+    return sorted(scored, key=lambda vr: (sign * vr[0], vr[1]["detector"]))
+
+
+def best_first(values: Mapping[str, float | None], metric: str) -> list[str]:
+    """Keys of `values` best first by the metric's direction; missing values last."""
+    sign = -1.0 if higher_is_better(metric) else 1.0
+    return sorted(values, key=lambda k: (values[k] is None, sign * (values[k] or 0.0), k))
+
+
+def detector_means(records: Sequence[Mapping[str, Any]], metric: str) -> dict[str, float | None]:
+    return {d: mean_over_anomalies(records, d, metric) for d in detectors(records)}
+
+
+SweepSeries = tuple[list[float], list[float], list[float], list[float]]
+
+
+def sweep_curves(
+    sweep: Mapping[str, Any], metric: str = "matched_auroc"
+) -> dict[str, dict[str, SweepSeries]]:
+    """injector -> detector -> (severities, means, ci_lows, ci_highs), severities ascending;
+    a missing CI bound falls back to the mean."""
+    curves: dict[str, dict[str, SweepSeries]] = {}
+    for injector, grid in sorted(sweep.get("sweep", {}).items()):
+        per_detector: dict[str, SweepSeries] = {}
+        for severity in sorted(grid, key=float):
+            for detector, metrics in sorted(grid[severity].items()):
+                record = {"metrics": metrics}
+                mean = stat(record, metric)
+                if mean is None:
+                    continue
+                low, high = stat(record, metric, "ci_low"), stat(record, metric, "ci_high")
+                series = per_detector.setdefault(detector, ([], [], [], []))
+                for values, value in zip(series, (float(severity), mean, low, high), strict=True):
+                    values.append(mean if value is None else value)
+        curves[injector] = per_detector
+    return curves
+
+
+def sweep_grid(
+    per_detector: Mapping[str, SweepSeries],
+) -> tuple[list[float], list[str], dict[tuple[str, float], float]]:
+    """Severities, detectors and (detector, severity) -> mean of one injector's curves."""
+    severities = sorted({x for xs, *_ in per_detector.values() for x in xs})
+    lookup = {
+        (d, x): mean
+        for d, (xs, means, *_) in per_detector.items()
+        for x, mean in zip(xs, means, strict=True)
+    }
+    return severities, sorted(per_detector), lookup
+
+
+# ------------------------------------------------------------------------------------ formatting
+
+
+def fmt(value: float | None, digits: int = 3) -> str:
+    return MISSING if value is None else f"{value:.{digits}f}"
+
+
+def fmt_ci(record: Mapping[str, Any], metric: str, digits: int = 3) -> str:
+    mean, low, high = (stat(record, metric, f) for f in ("mean", "ci_low", "ci_high"))
+    if mean is None:
+        return MISSING
+    if low is None or high is None:
+        return fmt(mean, digits)
+    return f"{mean:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
+def markdown_table(
+    header: Sequence[str], rows: Sequence[Sequence[str]], align: str | None = None
+) -> str:
+    """A pipe table padded to column width (readable as plain text). `align` has one letter per
+    column, "l" or "r"; the default is the first column left, the others right."""
+    align = align or "l" + "r" * (len(header) - 1)
+    widths = [max(len(str(c)) for c in column) for column in zip(header, *rows, strict=True)]
+    widths = [max(w, 3) for w in widths]
+
+    def line(cells: Sequence[str]) -> str:
+        padded = [
+            str(c).rjust(w) if a == "r" else str(c).ljust(w)
+            for c, w, a in zip(cells, widths, align, strict=True)
+        ]
+        return "| " + " | ".join(padded) + " |"
+
+    rule = [
+        "-" * (w - 1) + ":" if a == "r" else "-" * w for w, a in zip(widths, align, strict=True)
+    ]
+    return "\n".join(
+        [line(header), "|" + "|".join(f" {r} " for r in rule) + "|"] + [line(r) for r in rows]
+    )
+
+
+# ---------------------------------------------------------------------------------------- tables
+
+
+def headline_table(results: Mapping[str, Any]) -> str:
+    """Per-detector mean matched AUROC / AUPRC over anomalies, best first (for the README)."""
+    records = anomaly_records(results)
+    aurocs = detector_means(records, "matched_auroc")
+    auprcs = detector_means(records, "matched_auprc")
+    rows = [
+        [d, fmt(aurocs[d]), fmt(auprcs[d]), str(sum(r["detector"] == d for r in records))]
+        for d in best_first(aurocs, "matched_auroc")
+    ]
+    return markdown_table(["detector", "matched AUROC", "matched AUPRC", "anomalies"], rows)
+
+
+def best_per_anomaly_table(results: Mapping[str, Any]) -> str:
+    """Per anomaly: the best detector by matched AUROC (with its CI) and the runner-up."""
+    records = anomaly_records(results)
+    keys = anomaly_keys(records)
+    labels = anomaly_labels(keys)
+    rows = []
+    for key in keys:
+        ranking = ranked([r for r in records if anomaly_key(r) == key], "matched_auroc")
+        if not ranking:
+            continue
+        best = ranking[0][1]
+        runner_up = MISSING
+        if len(ranking) > 1:
+            runner_up = f"{ranking[1][1]['detector']} ({ranking[1][0]:.3f})"
+        rows.append(
+            [
+                labels[key],
+                key[1],
+                fmt(key[2], 2),
+                best["detector"],
+                fmt_ci(best, "matched_auroc"),
+                fmt(stat(best, "matched_auprc")),
+                runner_up,
+            ]
+        )
+    header = ["anomaly", "mode", "σ", "best detector", "matched AUROC [95% CI]", "matched AUPRC"]
+    return markdown_table([*header, "runner-up"], rows, align="llrlrrl")
+
+
+def per_detector_table(results: Mapping[str, Any], metric: str, title: str, digits: int) -> str:
+    """A detector's mean of `metric` over anomalies, best first."""
+    means = detector_means(anomaly_records(results), metric)
+    rows = [[d, fmt(means[d], digits)] for d in best_first(means, metric)]
+    return markdown_table(["detector", title], rows)
+
+
+def best_auroc_versus_best_table(
+    results: Mapping[str, Any], metric: str, title: str, digits: int
+) -> str:
+    """Per anomaly: the best-AUROC detector's value of `metric` against the best value of it."""
+    records = anomaly_records(results)
+    keys = anomaly_keys(records)
+    labels = anomaly_labels(keys)
+    rows = []
+    for key in keys:
+        group = [r for r in records if anomaly_key(r) == key]
+        by_auroc, by_metric = ranked(group, "matched_auroc"), ranked(group, metric)
+        if not by_auroc or not by_metric:
+            continue
+        top = by_auroc[0][1]
+        rows.append(
+            [
+                labels[key],
+                top["detector"],
+                fmt(stat(top, metric), digits),
+                by_metric[0][1]["detector"],
+                fmt(by_metric[0][0], digits),
+            ]
+        )
+    header = ["anomaly", "best-AUROC detector", title, f"best by {title}", title]
+    return markdown_table(header, rows, align="llrlr")
+
+
+def null_baseline_table(results: Mapping[str, Any]) -> str:
+    """Null AUROC and clean alarm rate per detector and execution mode."""
+    records = null_records(results)
+    modes = sorted({r["mode"] for r in records}, key=lambda m: (m != "posthoc", m))
+    header = ["detector"]
+    for mode in modes:
+        header += [f"null AUROC ({mode})", f"clean alarm rate ({mode})"]
+    rows = []
+    for d in detectors(records):
+        row = [d]
+        for mode in modes:
+            record = next((r for r in records if r["detector"] == d and r["mode"] == mode), {})
+            row += [fmt_ci(record, "null_auroc"), fmt(stat(record, "clean_alarm_rate"), 4)]
+        rows.append(row)
+    return markdown_table(header, rows)
+
+
+def sweep_tables(sweep: Mapping[str, Any], metric: str = "matched_auroc") -> str:
+    """One table per injector: `metric` per detector × severity."""
+    modes = sweep.get("modes", {})
+    parts = [f"## Severity sweeps ({LABELS.get(metric, metric)})"]
+    for injector, per_detector in sweep_curves(sweep, metric).items():
+        severities, names, lookup = sweep_grid(per_detector)
+        rows = [[d] + [fmt(lookup.get((d, x))) for x in severities] for d in names]
+        header = ["detector"] + [f"σ={x:g}" for x in severities]
+        mode = f" ({modes[injector]})" if injector in modes else ""
+        parts += [f"### {injector}{mode}", markdown_table(header, rows)]
+    return "\n\n".join(parts) + "\n"
+
+
+def render_tables(results: Mapping[str, Any], sweep: Mapping[str, Any] | None = None) -> str:
+    """All tables of SPEC §7 as one markdown document (tables.md, `oodrl show`)."""
+    sections = [
+        "# oodrl results",
+        "## Detectors: mean matched AUROC / AUPRC over anomalies",
+        headline_table(results),
+        "## Best detector per anomaly (by matched AUROC)",
+        best_per_anomaly_table(results),
+        "## Detection delay (steps after the onset; T − t* when there is no alarm)",
+        per_detector_table(results, "detection_delay", "mean delay", 1),
+        best_auroc_versus_best_table(results, "detection_delay", "delay", 1),
+        "## Matched FPR at 95% TPR",
+        per_detector_table(results, "matched_fpr95", "matched FPR95", 3),
+        best_auroc_versus_best_table(results, "matched_fpr95", "FPR95", 3),
+        "## Null baseline (clean evaluation trajectories, counterfactual labels)",
+        null_baseline_table(results),
+    ]
+    text = "\n\n".join(sections) + "\n"
+    return text + "\n" + sweep_tables(sweep) if sweep else text
+
+
+# ------------------------------------------------------------------------------------ metrics.json
+
+
+def _round(value: float) -> float:
+    return round(float(value), 6) + 0.0
+
+
+def metrics_json(
+    results: Mapping[str, Any], sweep: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
+    """Flat numbers for `dvc metrics diff`, keys sorted, floats rounded to 6 decimals.
+
+    detectors.<detector>.<metric>: mean over anomalies of DETECTOR_METRICS;
+    anomalies.<anomaly>.best_matched_auroc; and, with a sweep,
+    sweep.<injector>.<detector>.mean_matched_auroc (mean over the severity grid).
+    """
+    records = anomaly_records(results)
+    out: dict[str, Any] = {"anomalies": {}, "detectors": {}}
+    for d in detectors(records):
+        means = {m: mean_over_anomalies(records, d, m) for m in DETECTOR_METRICS}
+        out["detectors"][d] = {m: _round(v) for m, v in means.items() if v is not None}
+    keys = anomaly_keys(records)
+    for key, label in sorted(anomaly_labels(keys).items(), key=lambda kl: kl[1]):
+        ranking = ranked([r for r in records if anomaly_key(r) == key], "matched_auroc")
+        if ranking:
+            out["anomalies"][label] = {"best_matched_auroc": _round(ranking[0][0])}
+    if sweep:
+        out["sweep"] = {
+            injector: {
+                d: {"mean_matched_auroc": _round(sum(means) / len(means))}
+                for d, (_, means, *_) in sorted(per_detector.items())
+            }
+            for injector, per_detector in sweep_curves(sweep).items()
+        }
+    return out

@@ -1,0 +1,132 @@
+"""The real DVC pipeline on tiny params, in a throw-away git + DVC repository.
+
+One small pipeline (2 detectors × 2 injectors, T=60) is built once per session; each test
+works on its own copy of that repository (DVC cache included), so tests stay independent.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from oodrl.testing.pipeline import copy_project, lock_hashes, repro, run
+
+pytestmark = pytest.mark.slow
+
+DETECTORS = ["mahalanobis_distance", "kde_density"]
+INJECTORS = ["observation_delay", "stuck_actuator"]
+
+
+def tiny_params(default: dict) -> dict:
+    params = json.loads(json.dumps(default))
+    params["env"]["T"] = 60
+    params["data"].update(n_id=4, n_ood=3)
+    params["anomaly"]["sweep"] = [0.2, 0.6]
+    params["benchmark"] = {"detectors": DETECTORS, "injectors": INJECTORS}
+    params["metrics"]["n_boot"] = 20
+    params["metrics"]["traces_per_anomaly"] = 1
+    params["executor"]["workers"] = 1
+    return params
+
+
+@pytest.fixture(scope="session")
+def built_repo(tmp_path_factory, repo_root, _default_params) -> Path:
+    if not (repo_root / "models" / "policy.pt").is_file():
+        pytest.skip("models/policy.pt is not committed yet")
+    repo = copy_project(repo_root, tmp_path_factory.mktemp("built"), tiny_params(_default_params))
+    ran = repro(repo)
+    assert "train_policy" not in ran, "the committed policy and dvc.lock must prevent retraining"
+    return repo
+
+
+@pytest.fixture
+def repo(built_repo, tmp_path) -> Path:
+    copy = tmp_path / "repo"
+    shutil.copytree(built_repo, copy, symlinks=True)
+    return copy
+
+
+def edit_params(repo: Path, edit) -> None:
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    edit(params)
+    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+def test_full_pipeline_writes_every_output(built_repo):
+    for path in [
+        "data/id.zarr", "data/eval.zarr", "data/ood/stuck_actuator.zarr",
+        "data/sweep/observation_delay.zarr", "models/detectors/kde_density.pkl",
+        "scores/kde_density/eval.zarr", "scores/kde_density/stuck_actuator.zarr",
+        "reports/results.yaml", "reports/sweep_results.yaml", "reports/metrics.json",
+        "reports/tables.md", "reports/run_meta.yaml", "reports/headline.md",
+        "reports/figures/matched_auroc_heatmap.png", "reports/figures/severity_curves.png",
+        "reports/figures/score_traces.png",
+    ]:  # fmt: skip
+        assert (built_repo / path).exists(), path
+    results = yaml.safe_load((built_repo / "reports/results.yaml").read_text())
+    anomaly = [r for r in results["records"] if r["kind"] == "anomaly"]
+    assert {(r["detector"], r["anomaly"]) for r in anomaly} == {
+        (d, i) for d in DETECTORS for i in INJECTORS
+    }
+    for record in anomaly:
+        assert set(record["metrics"]["matched_auroc"]) == {
+            "mean", "std", "ci_low", "ci_high", "n_episodes"
+        }  # fmt: skip
+        assert record["metrics"]["matched_auroc"]["n_episodes"] == 3
+    nulls = {(r["detector"], r["mode"]) for r in results["records"] if r["kind"] == "null"}
+    assert nulls == {(d, m) for d in DETECTORS for m in ("online", "posthoc")}
+
+
+def test_up_to_date_after_repro(repo):
+    assert run(repo, "dvc", "status", "-q", check=False).returncode == 0
+    assert repro(repo) == []
+
+
+def test_injector_param_reruns_only_that_injector(repo):
+    before = lock_hashes(repo)
+    edit_params(repo, lambda p: p["anomaly"]["injectors"]["observation_delay"].update(max_delay=4))
+    status = run(repo, "dvc", "status", "--json").stdout
+    assert sorted(json.loads(status)) == [
+        "collect_ood@observation_delay", "collect_sweep@observation_delay",
+    ]  # fmt: skip
+    ran = repro(repo)
+    assert ran == sorted([
+        "collect_ood@observation_delay", "collect_sweep@observation_delay",
+        "score@kde_density-observation_delay", "score@mahalanobis_distance-observation_delay",
+        "metrics", "render",
+    ])  # fmt: skip
+    after = lock_hashes(repo)
+    assert after["data/ood/stuck_actuator.zarr"] == before["data/ood/stuck_actuator.zarr"]
+    assert after["data/ood/observation_delay.zarr"] != before["data/ood/observation_delay.zarr"]
+
+
+def test_detector_param_reruns_only_that_detector(repo):
+    edit_params(repo, lambda p: p["detectors"]["kde_density"].update(threshold_percentile=95.0))
+    ran = repro(repo)
+    assert ran == sorted([
+        "fit@kde_density", "score_clean@kde_density",
+        "score@kde_density-observation_delay", "score@kde_density-stuck_actuator",
+        "metrics", "render",
+    ])  # fmt: skip
+
+
+def test_experiment_and_metrics_diff(repo):
+    run(repo, "git", "add", "-A")
+    run(repo, "git", "commit", "-q", "-m", "baseline run")
+    run(repo, "dvc", "exp", "run", "-S", "anomaly.severity=0.9")
+    diff = run(repo, "dvc", "metrics", "diff", "--json").stdout
+    changes = json.loads(diff)["reports/metrics.json"]
+    assert any(v["diff"] not in (0, None) for v in changes.values()), changes
+
+
+def test_bad_params_edit_is_refused_before_any_stage(repo):
+    before = lock_hashes(repo)
+    edit_params(repo, lambda p: p["anomaly"].update(severity=1.7))
+    done = run(repo, "dvc", "repro", check=False)
+    assert done.returncode != 0
+    assert "anomaly.severity" in done.stdout + done.stderr
+    assert lock_hashes(repo) == before

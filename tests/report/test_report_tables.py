@@ -1,0 +1,185 @@
+"""Markdown tables and metrics.json from a small hand-made results dict."""
+
+import json
+
+from oodrl.report.tables import (
+    headline_table,
+    markdown_table,
+    metrics_json,
+    render_tables,
+    sweep_tables,
+)
+
+
+def stats(mean):
+    return {
+        "mean": mean,
+        "std": 0.1,
+        "ci_low": mean - 0.05,
+        "ci_high": mean + 0.05,
+        "n_episodes": 20,
+    }
+
+
+def record(detector, anomaly, mode="posthoc", severity=0.5, kind="anomaly", **metrics):
+    return {
+        "kind": kind,
+        "detector": detector,
+        "anomaly": anomaly,
+        "mode": mode,
+        "severity": severity,
+        "metrics": {name: stats(value) for name, value in metrics.items()},
+    }
+
+
+# a: best on noise, fast on stuck; b: best on stuck, fastest on noise, better mean AUROC.
+SMALL = {
+    "records": [
+        record("a", "noise", matched_auroc=0.9, matched_auprc=0.8, detection_delay=30.0,
+               matched_fpr95=0.2, clean_alarm_rate=0.01),
+        record("a", "stuck", "online", matched_auroc=0.6, matched_auprc=0.6,
+               detection_delay=5.0, matched_fpr95=0.3, clean_alarm_rate=0.03),
+        record("b", "noise", matched_auroc=0.7, matched_auprc=0.7, detection_delay=2.0,
+               matched_fpr95=0.1, clean_alarm_rate=0.02),
+        record("b", "stuck", "online", matched_auroc=0.85, matched_auprc=0.9,
+               detection_delay=50.0, matched_fpr95=0.5, clean_alarm_rate=0.02),
+        record("a", "null", "posthoc", None, "null", null_auroc=0.52, clean_alarm_rate=0.011),
+        record("b", "null", "online", None, "null", null_auroc=0.48, clean_alarm_rate=0.021),
+    ]
+}  # fmt: skip
+
+SWEEP = {
+    "modes": {"noise": "posthoc"},
+    "sweep": {
+        "noise": {
+            0.2: {"a": {"matched_auroc": stats(0.6)}, "b": {"matched_auroc": stats(0.55)}},
+            0.1: {"a": {"matched_auroc": stats(0.5)}},
+        }
+    },
+}
+
+
+def table_after(text, heading):
+    """The rows (as lists of cells) of the first table after a line starting with `heading`."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(heading))
+    rows = []
+    for line in lines[start + 1 :]:
+        if line.startswith("|"):
+            rows.append([c.strip() for c in line.strip("|").split("|")])
+        elif rows:
+            break
+    return rows[0], rows[2:]
+
+
+def test_headline_table_ranks_detectors_by_mean_matched_auroc():
+    header, rows = table_after("x\n" + headline_table(SMALL), "x")
+    assert header == ["detector", "matched AUROC", "matched AUPRC", "anomalies"]
+    assert rows == [["b", "0.775", "0.800", "2"], ["a", "0.750", "0.700", "2"]]
+
+
+def test_best_detector_per_anomaly():
+    _, rows = table_after(render_tables(SMALL), "## Best detector")
+    assert rows[0][:4] == ["noise", "posthoc", "0.50", "a"]
+    assert rows[0][4] == "0.900 [0.850, 0.950]"
+    assert rows[0][6] == "b (0.700)"
+    assert rows[1][:4] == ["stuck", "online", "0.50", "b"]
+
+
+def test_delay_tables_compare_best_auroc_with_fastest():
+    text = render_tables(SMALL)
+    _, per_detector = table_after(text, "## Detection delay")
+    assert per_detector == [["a", "17.5"], ["b", "26.0"]]  # lower is better
+    per_anomaly = [r for r in text.split("\n\n") if "best-AUROC detector" in r and "delay" in r][0]
+    _, rows = table_after("x\n" + per_anomaly, "x")
+    assert rows == [["noise", "a", "30.0", "b", "2.0"], ["stuck", "b", "50.0", "a", "5.0"]]
+
+
+def test_fpr95_tables_prefer_lower_values():
+    text = render_tables(SMALL)
+    _, per_detector = table_after(text, "## Matched FPR")
+    assert per_detector == [["a", "0.250"], ["b", "0.300"]]
+    per_anomaly = [r for r in text.split("\n\n") if "best by FPR95" in r][0]
+    _, rows = table_after("x\n" + per_anomaly, "x")
+    assert rows == [["noise", "a", "0.200", "b", "0.100"], ["stuck", "b", "0.500", "a", "0.300"]]
+
+
+def test_null_baseline_per_detector_and_mode():
+    header, rows = table_after(render_tables(SMALL), "## Null baseline")
+    assert header == [
+        "detector",
+        "null AUROC (posthoc)",
+        "clean alarm rate (posthoc)",
+        "null AUROC (online)",
+        "clean alarm rate (online)",
+    ]
+    assert rows[0] == ["a", "0.520 [0.470, 0.570]", "0.0110", "—", "—"]
+    assert rows[1] == ["b", "—", "—", "0.480 [0.430, 0.530]", "0.0210"]
+
+
+def test_sweep_tables():
+    text = sweep_tables(SWEEP)
+    assert "### noise (posthoc)" in text
+    header, rows = table_after(text, "### noise")
+    assert header == ["detector", "σ=0.1", "σ=0.2"]
+    assert rows == [["a", "0.500", "0.600"], ["b", "—", "0.550"]]
+    assert render_tables(SMALL, SWEEP).endswith(text)
+    assert "Severity sweeps" not in render_tables(SMALL)
+
+
+def test_duplicate_anomaly_names_get_mode_and_severity():
+    results = {
+        "records": [
+            record("a", "noise", severity=0.2, matched_auroc=0.6),
+            record("a", "noise", severity=0.8, matched_auroc=0.9),
+        ]
+    }
+    _, rows = table_after(render_tables(results), "## Best detector")
+    assert [r[0] for r in rows] == ["noise (posthoc, σ=0.2)", "noise (posthoc, σ=0.8)"]
+
+
+def test_missing_metrics_render_as_dashes():
+    results = {"records": [record("a", "noise", matched_auroc=0.6)]}
+    text = render_tables(results)
+    _, rows = table_after(text, "## Detectors")
+    assert rows == [["a", "0.600", "—", "1"]]
+    assert "## Detection delay" in text
+
+
+def test_markdown_table_alignment():
+    table = markdown_table(["name", "value"], [["x", "1.0"], ["long name", "10.25"]])
+    assert table.splitlines() == [
+        "| name      | value |",
+        "| --------- | ----: |",
+        "| x         |   1.0 |",
+        "| long name | 10.25 |",
+    ]
+
+
+def test_metrics_json_is_flat_sorted_and_rounded():
+    data = metrics_json(SMALL, SWEEP)
+    assert data["detectors"]["a"] == {
+        "clean_alarm_rate": 0.02,
+        "detection_delay": 17.5,
+        "matched_auprc": 0.7,
+        "matched_auroc": 0.75,
+        "matched_fpr95": 0.25,
+    }
+    assert data["anomalies"] == {
+        "noise": {"best_matched_auroc": 0.9},
+        "stuck": {"best_matched_auroc": 0.85},
+    }
+    assert data["sweep"] == {
+        "noise": {"a": {"mean_matched_auroc": 0.55}, "b": {"mean_matched_auroc": 0.55}}
+    }
+    text = json.dumps(data)
+    assert text == json.dumps(data, sort_keys=True)
+    assert "sweep" not in metrics_json(SMALL)
+
+
+def test_tables_render_the_realistic_fixture(results, sweep):
+    text = render_tables(results, sweep)
+    assert text.count("### ") == 9  # one sweep table per injector
+    assert text == render_tables(results, sweep)
+    pedm = metrics_json(results)["detectors"]["pedm"]
+    assert all(v == round(v, 6) for v in pedm.values())
