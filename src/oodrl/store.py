@@ -74,8 +74,10 @@ def write_store(path: Path, groups: Mapping[str, tuple[Mapping[str, np.ndarray],
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    # Temporary siblings left by a killed earlier run are removed first.
+    for stale in path.parent.glob(f".{path.name}.tmp-*"):
+        shutil.rmtree(stale, ignore_errors=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
     try:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
         for name in sorted(groups):

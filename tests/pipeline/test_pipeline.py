@@ -1,59 +1,16 @@
-"""The real DVC pipeline on tiny params, in a throw-away git + DVC repository.
-
-One small pipeline (2 detectors × 2 injectors, T=60) is built once per session; each test
-works on its own copy of that repository (DVC cache included), so tests stay independent.
-"""
+"""The real DVC pipeline on tiny params, in a throw-away git + DVC repository."""
 
 from __future__ import annotations
 
 import json
-import shutil
-from pathlib import Path
 
 import pytest
 import yaml
+from conftest import DETECTORS, INJECTORS, edit_params
 
-from oodrl.testing.pipeline import copy_project, lock_hashes, repro, run
+from oodrl.testing.pipeline import lock_hashes, repro, run
 
 pytestmark = pytest.mark.slow
-
-DETECTORS = ["mahalanobis_distance", "kde_density"]
-INJECTORS = ["observation_delay", "stuck_actuator"]
-
-
-def tiny_params(default: dict) -> dict:
-    params = json.loads(json.dumps(default))
-    params["env"]["T"] = 60
-    params["data"].update(n_id=4, n_ood=3)
-    params["anomaly"]["sweep"] = [0.2, 0.6]
-    params["benchmark"] = {"detectors": DETECTORS, "injectors": INJECTORS}
-    params["metrics"]["n_boot"] = 20
-    params["metrics"]["traces_per_anomaly"] = 1
-    params["executor"]["workers"] = 1
-    return params
-
-
-@pytest.fixture(scope="session")
-def built_repo(tmp_path_factory, repo_root, _default_params) -> Path:
-    if not (repo_root / "models" / "policy.pt").is_file():
-        pytest.skip("models/policy.pt is not committed yet")
-    repo = copy_project(repo_root, tmp_path_factory.mktemp("built"), tiny_params(_default_params))
-    ran = repro(repo)
-    assert "train_policy" not in ran, "the committed policy and dvc.lock must prevent retraining"
-    return repo
-
-
-@pytest.fixture
-def repo(built_repo, tmp_path) -> Path:
-    copy = tmp_path / "repo"
-    shutil.copytree(built_repo, copy, symlinks=True)
-    return copy
-
-
-def edit_params(repo: Path, edit) -> None:
-    params = yaml.safe_load((repo / "params.yaml").read_text())
-    edit(params)
-    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
 
 def test_full_pipeline_writes_every_output(built_repo):

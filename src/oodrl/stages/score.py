@@ -23,15 +23,26 @@ CLEAN_GROUP = "clean"
 
 
 def _scores(detector, name: str, tset: TrajectorySet, condition: str) -> np.ndarray:
+    """Scores (N, T); a failure names the detector, the condition and the episode."""
+    trajectories = tset.trajectories()
     try:
-        outputs = detector.score_many(tset.trajectories())
-    except DetectorError:
-        raise
+        outputs = detector.score_many(trajectories)
+    except Exception:
+        # Batched scoring hides which episode broke: find it one episode at a time.
+        outputs = [
+            _score_episode(detector, name, t, condition, i) for i, t in enumerate(trajectories)
+        ]
+    return np.stack([o.scores for o in outputs])
+
+
+def _score_episode(detector, name: str, trajectory, condition: str, episode: int):
+    try:
+        return detector.score(trajectory)
     except Exception as error:
         raise DetectorError(
-            f"Detector '{name}' failed scoring {condition}: {type(error).__name__}: {error}"
+            f"Detector '{name}' failed scoring episode {episode} (seed "
+            f"{trajectory.info.get('seed')}) of {condition}: {type(error).__name__}: {error}"
         ) from error
-    return np.stack([o.scores for o in outputs])
 
 
 def _root_attrs(detector, name: str) -> dict:

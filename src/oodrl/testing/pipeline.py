@@ -27,8 +27,8 @@ def project_files(root: Path) -> list[str]:
     return sorted(f for f in listed.split("\0") if f and (root / f).is_file())
 
 
-def _environment() -> dict[str, str]:
-    env = dict(os.environ)
+def _environment(extra: dict[str, str] | None = None) -> dict[str, str]:
+    env = {**os.environ, **(extra or {})}
     # Stage commands call `oodrl`: make the running interpreter's scripts win on PATH.
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     env.setdefault("GIT_AUTHOR_NAME", "oodrl")
@@ -39,10 +39,12 @@ def _environment() -> dict[str, str]:
     return env
 
 
-def run(repo: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
-    """Run a command in the copy; DVC through the current interpreter."""
+def run(
+    repo: Path, *args: str, check: bool = True, env: dict[str, str] | None = None
+) -> subprocess.CompletedProcess:
+    """Run a command in the copy (DVC through the current interpreter), `env` added."""
     command = [sys.executable, "-m", "dvc", *args[1:]] if args[0] == "dvc" else list(args)
-    done = subprocess.run(command, cwd=repo, env=_environment(), capture_output=True, text=True)
+    done = subprocess.run(command, cwd=repo, env=_environment(env), capture_output=True, text=True)
     if check and done.returncode != 0:
         raise RuntimeError(
             f"`{' '.join(args)}` failed with exit code {done.returncode}:\n"
@@ -65,9 +67,9 @@ def copy_project(source: Path, dest: Path, params: dict[str, Any] | None = None)
     return dest
 
 
-def repro(repo: Path, *args: str) -> list[str]:
+def repro(repo: Path, *args: str, env: dict[str, str] | None = None) -> list[str]:
     """`dvc repro`; returns the names of the stages that ran."""
-    done = run(repo, "dvc", "repro", *args)
+    done = run(repo, "dvc", "repro", *args, env=env)
     return sorted(
         line.split("'")[1]
         for line in done.stdout.splitlines()

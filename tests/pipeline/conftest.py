@@ -1,0 +1,95 @@
+"""A tiny pipeline (2 detectors × 2 injectors, T=60) built once per session in a throw-away
+git + DVC repository; each test works on its own copy (DVC cache included)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+
+from oodrl.testing.pipeline import copy_project, repro
+
+DETECTORS = ["mahalanobis_distance", "kde_density"]
+INJECTORS = ["observation_delay", "stuck_actuator"]
+
+
+def tiny_params(default: dict) -> dict:
+    params = json.loads(json.dumps(default))
+    params["env"]["T"] = 60
+    params["data"].update(n_id=4, n_ood=3)
+    params["anomaly"]["sweep"] = [0.2, 0.6]
+    params["benchmark"] = {"detectors": DETECTORS, "injectors": INJECTORS}
+    params["metrics"]["n_boot"] = 20
+    params["metrics"]["traces_per_anomaly"] = 1
+    params["executor"]["workers"] = 1
+    return params
+
+
+@pytest.fixture(scope="session")
+def built_repo(tmp_path_factory, repo_root, _default_params) -> Path:
+    if not (repo_root / "models" / "policy.pt").is_file():
+        pytest.skip("models/policy.pt is not committed yet")
+    repo = copy_project(repo_root, tmp_path_factory.mktemp("built"), tiny_params(_default_params))
+    ran = repro(repo)
+    assert "train_policy" not in ran, "the committed policy and dvc.lock must prevent retraining"
+    return repo
+
+
+@pytest.fixture
+def repo(built_repo, tmp_path) -> Path:
+    copy = tmp_path / "repo"
+    shutil.copytree(built_repo, copy, symlinks=True)
+    return copy
+
+
+def edit_params(repo: Path, edit) -> None:
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    edit(params)
+    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+@pytest.fixture
+def plugin_env(repo) -> dict[str, str]:
+    """Makes a detector module written in the test (`oodrl_test_plugin`) importable by stages."""
+    (repo / "oodrl_test_plugin.py").write_text(PLUGIN_SOURCE)
+    return {"PYTHONPATH": str(repo)}
+
+
+PLUGIN_SOURCE = '''
+"""Detectors defined by the test suite, reached through a `module:Class` path in params."""
+
+import numpy as np
+
+from oodrl.core import BaseDetector
+from oodrl.validation import Interval
+
+
+class SpeedDetector(BaseDetector):
+    """Absolute deviation of the lander's speed from its ID mean, in ID standard deviations."""
+
+    def _fit(self, trajectories):
+        speed = np.concatenate([np.hypot(t.states[:, 2], t.states[:, 3]) for t in trajectories])
+        self.mean_, self.std_ = float(speed.mean()), float(speed.std()) + 1e-9
+
+    def _score(self, trajectory):
+        speed = np.hypot(trajectory.states[:, 2], trajectory.states[:, 3])
+        return np.abs(speed - self.mean_) / self.std_
+
+
+class ExplodingDetector(SpeedDetector):
+    """Raises while scoring the trajectory whose seed is `explode_on_seed`."""
+
+    _parameter_constraints = {"explode_on_seed": [Interval(int, 0, None)]}
+
+    def __init__(self, *, explode_on_seed=0, **base):
+        super().__init__(**base)
+        self.explode_on_seed = explode_on_seed
+
+    def _score(self, trajectory):
+        if trajectory.info.get("seed") == self.explode_on_seed:
+            raise ValueError("boom")
+        return super()._score(trajectory)
+'''

@@ -1,0 +1,93 @@
+"""Failure behaviour of the pipeline: plugins, a failing detector, killed stages, corruption."""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+import yaml
+from conftest import INJECTORS, edit_params
+
+from oodrl.testing.pipeline import _environment, repro, run
+
+pytestmark = pytest.mark.slow
+
+
+def _add_detector(name: str, block: dict):
+    def edit(params):
+        params["benchmark"]["detectors"].append(name)
+        params["detectors"][name] = block
+
+    return edit
+
+
+def test_module_class_detector_is_fitted_scored_and_reported(repo, plugin_env):
+    edit_params(repo, _add_detector("speed", {"class": "oodrl_test_plugin:SpeedDetector"}))
+    ran = repro(repo, env=plugin_env)
+    assert {"fit@speed", "score_clean@speed", "metrics", "render"} <= set(ran)
+    assert {f"score@speed-{i}" for i in INJECTORS} <= set(ran)
+    results = yaml.safe_load((repo / "reports/results.yaml").read_text())
+    speed = [r for r in results["records"] if r["detector"] == "speed" and r["kind"] == "anomaly"]
+    assert sorted(r["anomaly"] for r in speed) == sorted(INJECTORS)
+    assert "speed" in (repo / "reports/tables.md").read_text()
+
+
+def test_failing_detector_names_itself_and_the_episode_and_keep_going_completes(repo, plugin_env):
+    block = {"class": "oodrl_test_plugin:ExplodingDetector", "explode_on_seed": 10001}
+    edit_params(repo, _add_detector("exploding", block))
+    done = run(repo, "dvc", "repro", check=False, env=plugin_env)
+    assert done.returncode != 0
+    output = done.stdout + done.stderr
+    assert "Detector 'exploding' failed scoring episode 1 (seed 10001)" in output
+    assert "Traceback" not in output
+
+    kept = run(repo, "dvc", "repro", "-k", check=False, env=plugin_env)
+    assert kept.returncode != 0
+    assert "Running stage 'score@exploding-stuck_actuator'" in kept.stdout
+    status = yaml.safe_load(run(repo, "dvc", "status", "--json").stdout) or {}
+    assert not any(name.startswith("score@exploding") for name in status), status
+
+
+def test_killed_stage_leaves_no_half_written_output_and_next_repro_completes(repo):
+    """Kill collect_id while it writes its store: no store at the output path, then repro."""
+    edit_params(repo, lambda p: p["data"].update(n_id=64))
+    store = repo / "data" / "id.zarr"
+    shutil.rmtree(store)  # as DVC does before it runs a stage
+    process = subprocess.Popen(
+        [sys.executable, "-m", "oodrl", "collect-id", "--policy", "models/policy.pt",
+         "--out", "data/id.zarr"],
+        cwd=repo, env=_environment(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    while process.poll() is None and not list(store.parent.glob(".id.zarr.tmp-*")):
+        time.sleep(0.0005)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    if process.returncode == 0:
+        pytest.skip("the stage finished before it could be killed mid-write")
+    assert not store.exists(), "a killed stage must not leave a store at its output path"
+    ran = repro(repo)
+    assert "collect_id" in ran
+    assert run(repo, "dvc", "status", "-q", check=False).returncode == 0
+    assert not list(store.parent.glob(".id.zarr.tmp-*"))
+
+
+def test_corrupt_store_and_pickle_give_clear_errors(repo):
+    shard = next(p for p in (repo / "data/eval.zarr/states/c").rglob("*") if p.is_file())
+    shard.write_bytes(shard.read_bytes()[:10])
+    done = run(repo, "oodrl", "score", "kde_density", "--model",
+               "models/detectors/kde_density.pkl", "--eval", "data/eval.zarr", "--out",
+               "scores/x.zarr", check=False)  # fmt: skip
+    assert done.returncode == 1
+    assert "data/eval.zarr" in done.stderr and "dvc repro -f collect_eval" in done.stderr
+    assert done.stderr.count("\n") == 1
+
+    (repo / "models/detectors/kde_density.pkl").write_bytes(b"not a pickle")
+    done = run(repo, "oodrl", "score", "kde_density", "--model",
+               "models/detectors/kde_density.pkl", "--eval", "data/id.zarr", "--out",
+               "scores/x.zarr", check=False)  # fmt: skip
+    assert done.returncode == 1
+    assert "dvc repro -f fit@kde_density" in done.stderr and "Traceback" not in done.stderr
