@@ -1,7 +1,7 @@
 """DetectorOutput and the BaseDetector contract (SPEC §1, §5).
 
 Score direction: a larger score means more anomalous, for every detector.
-Subclasses implement `_fit` and `_score` (and may override `_score_many` to batch);
+Subclasses implement `_fit` and one of `_score` (one trajectory) or `_score_many` (a batch);
 the base class owns `fit`, `calibrate`, `score`, the threshold rules and the alarms,
 so no detector can forget its threshold or mutate itself while scoring.
 """
@@ -85,13 +85,14 @@ class BaseDetector(Component):
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
         """Learn from in-distribution trajectories; store learned state in attributes ending `_`."""
 
-    @abstractmethod
     def _score(self, trajectory: Trajectory) -> np.ndarray:
         """Scores (T,) for one trajectory. Must not change `self`."""
+        return self._score_many([trajectory])[0]
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
         """Scores for many trajectories; override to batch (e.g. one network pass)."""
         return [self._score(t) for t in trajectories]
+
 
     # -- the public contract ---------------------------------------------------------------
     @property
@@ -99,6 +100,10 @@ class BaseDetector(Component):
         return self.name or type(self).__name__
 
     def fit(self, trajectories: Sequence[Trajectory]) -> BaseDetector:
+        cls = type(self)
+        if cls._score is BaseDetector._score and cls._score_many is BaseDetector._score_many:
+            # Each default calls the other: a detector must override at least one.
+            raise TypeError(f"{cls.__name__} must implement _score or _score_many.")
         self.validate_params()
         trajectories = list(trajectories)
         if not trajectories:
@@ -131,6 +136,8 @@ class BaseDetector(Component):
     def _checked_scores(self, trajectories: list[Trajectory]) -> list[DetectorOutput]:
         if not hasattr(self, "state_dim_"):
             raise NotFittedError(f"{self.detector_name} is not fitted: call fit() before scoring.")
+        if not trajectories:
+            return []
         for t in trajectories:
             if t.state_dim != self.state_dim_:
                 raise ContractError(

@@ -1,0 +1,25 @@
+"""Built-in OOD detectors (SPEC §5), registered by name and imported on first use.
+
+Score direction, for every detector: a larger score means more anomalous. This module imports
+nothing heavy: each detector's module (and torch, for the neural ones) loads only when the
+registry is asked for it. Plugins register through the `oodrl.detectors` entry-point group.
+
+Besides its own parameters (see each class), every detector takes `threshold_rule`
+("percentile", or "max" = the largest held-out score; default "percentile", `pedm` "max"),
+`threshold_percentile` (default 99.0) and `seed` (default 0; weights, data order, subsamples).
+"""
+
+from oodrl.registry import Registry
+
+DETECTORS = Registry("detector")
+
+DETECTORS.register("mahalanobis_distance", "oodrl.detectors.mahalanobis:MahalanobisDistance")
+DETECTORS.register("time_series_features", "oodrl.detectors.time_series:TimeSeriesFeatures")
+DETECTORS.register("pedm", "oodrl.detectors.pedm:Pedm")
+DETECTORS.register("autoencoder", "oodrl.detectors.autoencoder:Autoencoder")
+DETECTORS.register("ensemble_disagreement", "oodrl.detectors.ensemble:EnsembleDisagreement")
+DETECTORS.register("cusum", "oodrl.detectors.cusum:Cusum")
+DETECTORS.register("kde_density", "oodrl.detectors.kde:KdeDensity")
+DETECTORS.register("lyapunov_divergence", "oodrl.detectors.lyapunov:LyapunovDivergence")
+
+__all__ = ["DETECTORS"]

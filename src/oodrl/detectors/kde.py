@@ -1,0 +1,138 @@
+"""`kde_density`: negative log of a Gaussian kernel density estimate (SPEC §5).
+
+    p̂(x) = (1/n) Σ_j N(x; r_j, h² I),   z_t = −log(p̂(x_t) + ε),
+
+on standardised features x_t (state by default), with r_1..r_n the standardised fit features,
+subsampled (seeded, without replacement) to at most `max_reference` points. The density is that
+of the standardised feature space; the standardisation's constant Jacobian does not change ranks.
+
+The log-density is exact up to floating point: a brute-force log-sum-exp over all reference
+points in float64, chunked over the scored rows, with the per-row maximum factored out, so far
+outliers get their true (very negative) log-density instead of underflowing. It is computed in
+the log domain, so ε is not needed for finiteness; ε > 0 caps every score at −log ε (far
+outliers tie), which is why the default is 0.
+
+Bandwidth h: "scott" n^(−1/(d+4)), "silverman" (n(d+2)/4)^(−1/(d+4)) (the standardised-data
+forms of scipy's rules, n = number of reference points), or a float in standardised units.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import ClassVar
+
+import numpy as np
+
+from oodrl.core.detector import BaseDetector
+from oodrl.core.trajectory import Trajectory
+from oodrl.detectors.features import (
+    FEATURE_SETS,
+    ActionEncoding,
+    Standardizer,
+    seeded_subsample,
+    split_scores,
+    stacked,
+    trajectory_features,
+)
+from oodrl.validation import Interval, Options
+
+BANDWIDTH_RULES = ("scott", "silverman")
+
+#: Scored rows per block: (rows × reference) float64 temporaries stay cache-sized.
+_ROWS_PER_BLOCK = 128
+
+
+def bandwidth_of(rule: str | float, n: int, d: int) -> float:
+    """The kernel width h on standardised data for a rule name or a given float."""
+    if rule == "scott":
+        return float(n ** (-1.0 / (d + 4)))
+    if rule == "silverman":
+        return float((n * (d + 2) / 4.0) ** (-1.0 / (d + 4)))
+    return float(rule)
+
+
+def gaussian_kde_logpdf(x: np.ndarray, reference: np.ndarray, bandwidth: float) -> np.ndarray:
+    """log (1/n) Σ_j N(x_i; r_j, h² I) for every row of x, exactly (chunked log-sum-exp).
+
+    −‖x − r‖²/(2h²) = x·r/h² − ‖r‖²/(2h²) − ‖x‖²/(2h²); the last term is constant per row and
+    leaves the log-sum-exp, so each block needs one matrix product and one exp.
+    """
+    n, d = reference.shape
+    inv_h2 = 1.0 / bandwidth**2
+    scaled_reference_t = np.ascontiguousarray(reference.T) * inv_h2
+    reference_term = 0.5 * inv_h2 * np.einsum("ij,ij->i", reference, reference)
+    log_norm = np.log(n) + 0.5 * d * np.log(2.0 * np.pi * bandwidth**2)
+    out = np.empty(x.shape[0])
+    for start in range(0, x.shape[0], _ROWS_PER_BLOCK):
+        block = x[start : start + _ROWS_PER_BLOCK]
+        exponents = block @ scaled_reference_t
+        exponents -= reference_term
+        peak = exponents.max(axis=1, keepdims=True)
+        exponents -= peak
+        np.exp(exponents, out=exponents)
+        row_term = 0.5 * inv_h2 * np.einsum("ij,ij->i", block, block)
+        out[start : start + _ROWS_PER_BLOCK] = np.log(exponents.sum(axis=1)) + peak[:, 0] - row_term
+    return out - log_norm
+
+
+class KdeDensity(BaseDetector):
+    """Negative log Gaussian-kernel density of standardised step features.
+
+    Parameters
+    ----------
+    features : "state" | "state_action" | "transition", default "state"
+    bandwidth : "scott" | "silverman" | float > 0, default "scott"
+    max_reference : int >= 1, default 4096
+        Largest number of fit points kept as kernel centres (a seeded subsample).
+    epsilon : float >= 0, default 0.0
+        ε in −log(p̂ + ε).
+    """
+
+    name: ClassVar[str] = "kde_density"
+
+    _parameter_constraints: ClassVar[dict[str, list]] = {
+        "features": [Options(FEATURE_SETS)],
+        "bandwidth": [Options(BANDWIDTH_RULES), Interval(float, 0, None, closed="neither")],
+        "max_reference": [Interval(int, 1, None)],
+        "epsilon": [Interval(float, 0, None)],
+    }
+
+    def __init__(
+        self,
+        *,
+        features: str = "state",
+        bandwidth: str | float = "scott",
+        max_reference: int = 4096,
+        epsilon: float = 0.0,
+        threshold_rule: str = "percentile",
+        threshold_percentile: float = 99.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(
+            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
+        )
+        self.features = features
+        self.bandwidth = bandwidth
+        self.max_reference = max_reference
+        self.epsilon = epsilon
+
+    def _features(self, trajectory: Trajectory) -> np.ndarray:
+        return trajectory_features(trajectory, self.features, self.action_encoding_)
+
+    def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        self.action_encoding_ = ActionEncoding.fit(trajectories)
+        x = stacked(trajectories, self._features)
+        self.standardizer_ = Standardizer.fit(x)
+        keep = seeded_subsample(len(x), self.max_reference, self.seed)
+        self.reference_ = self.standardizer_.transform(x[keep])
+        self.bandwidth_ = bandwidth_of(self.bandwidth, *self.reference_.shape)
+
+    def _score(self, trajectory: Trajectory) -> np.ndarray:
+        return self._score_many([trajectory])[0]
+
+    def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        x = self.standardizer_.transform(stacked(trajectories, self._features))
+        log_density = gaussian_kde_logpdf(x, self.reference_, self.bandwidth_)
+        if self.epsilon > 0:
+            log_density = np.logaddexp(log_density, np.log(self.epsilon))
+        return split_scores(-log_density, trajectories)

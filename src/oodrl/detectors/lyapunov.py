@@ -1,0 +1,169 @@
+"""`lyapunov_divergence`: divergence from the nearest ID neighbour in a delay embedding (SPEC §5).
+
+    y_t = (x_t, x_{t−τ}, …, x_{t−(m−1)τ}),   x the standardised state,
+    j   = the fit-set embedding nearest to y_t (Euclidean, exact KD-tree search among at most
+          `max_reference` seeded-subsampled fit embeddings),
+    z_t = (1/H_t) Σ_{h=1..H_t} log((‖y_{t+h} − y_{j+h}‖ + ε) / (‖y_t − y_j‖ + ε)).
+
+A large z_t means the trajectory moves away from where the closest in-distribution trajectory
+went: its local dynamics differ. A step far from all ID data has a large denominator too, so
+this score answers changed dynamics, not displaced states: a displaced stream that contracts
+towards its neighbour can score *lower* than the clean one (tests/detectors/test_sanity.py).
+
+Episodes and the end of the trajectory. Each episode is its own series: the observations
+s_a..s_b of the episode followed by its last observation `next_states[b]` (the terminal one at a
+reset, the one after the last step at the end of the trajectory). Nothing crosses a reset:
+
+- embedding: components before the episode's first step repeat its first observation
+  (edge padding), in the fit set and in scored trajectories alike;
+- horizon: H_t = min(H, steps left in the episode's series), at least 1 since every step has
+  its next observation; near an episode end or the end of the trajectory the average runs over
+  the H_t steps that exist;
+- neighbours: only fit embeddings with a full horizon H ahead in their own episode are
+  candidates, so y_{j+h} always exists.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from oodrl.core.detector import BaseDetector
+from oodrl.core.trajectory import Trajectory
+from oodrl.detectors.features import Standardizer, seeded_subsample, split_scores
+from oodrl.errors import ContractError
+from oodrl.validation import Interval
+
+
+@dataclass(frozen=True)
+class EpisodeEmbedding:
+    """Delay embeddings of a set of trajectories, each episode extended by its last observation.
+
+    `vectors` (P, m·d) holds every position of every episode series; `steps` (ΣT,) the position
+    of each original step in trajectory order; `steps_left` (P,) how many positions follow in
+    the same episode series.
+    """
+
+    vectors: np.ndarray
+    steps: np.ndarray
+    steps_left: np.ndarray
+
+
+def episode_embedding(
+    trajectories: Sequence[Trajectory],
+    standardizer: Standardizer,
+    dimension: int,
+    lag: int,
+) -> EpisodeEmbedding:
+    vectors, steps, steps_left = [], [], []
+    offset = 0
+    for trajectory in trajectories:
+        states = standardizer.transform(trajectory.states.astype(np.float64))
+        last_states = standardizer.transform(trajectory.next_states.astype(np.float64))
+        ends = np.flatnonzero(trajectory.dones[:-1]).tolist() + [trajectory.T - 1]
+        ends = np.asarray(ends)
+        episode = np.concatenate([[0], np.cumsum(trajectory.dones[:-1])])
+        # The series: each episode's states followed by its last next_state.
+        series = np.insert(states, ends + 1, last_states[ends], axis=0)
+        series_episode = np.insert(episode, ends + 1, episode[ends])
+        position = np.arange(len(series))
+        first = np.searchsorted(series_episode, series_episode, side="left")
+        last = np.searchsorted(series_episode, series_episode, side="right") - 1
+        back = position[:, None] - lag * np.arange(dimension)
+        vectors.append(series[np.maximum(back, first[:, None])].reshape(len(series), -1))
+        steps.append(offset + np.arange(trajectory.T) + episode)
+        steps_left.append(last - position)
+        offset += len(series)
+    return EpisodeEmbedding(
+        np.concatenate(vectors), np.concatenate(steps), np.concatenate(steps_left)
+    )
+
+
+class LyapunovDivergence(BaseDetector):
+    """Mean log growth of the distance to the nearest ID neighbour over a short horizon.
+
+    Parameters
+    ----------
+    embedding_dim : int >= 1, default 2
+        Delay-embedding dimension m (the KD-tree slows quickly as m·d_s grows).
+    lag : int >= 1, default 1
+        Delay τ in steps.
+    horizon : int >= 1, default 5
+        H, the number of steps the divergence is followed.
+    epsilon : float > 0, default 1e-3
+        ε in standardised-state units; keeps the ratio finite when a distance is 0.
+    max_reference : int >= 1, default 4096
+        Largest number of candidate neighbours (a seeded subsample of the fit embeddings).
+    """
+
+    name: ClassVar[str] = "lyapunov_divergence"
+
+    _parameter_constraints: ClassVar[dict[str, list]] = {
+        "embedding_dim": [Interval(int, 1, None)],
+        "lag": [Interval(int, 1, None)],
+        "horizon": [Interval(int, 1, None)],
+        "epsilon": [Interval(float, 0, None, closed="neither")],
+        "max_reference": [Interval(int, 1, None)],
+    }
+
+    def __init__(
+        self,
+        *,
+        embedding_dim: int = 2,
+        lag: int = 1,
+        horizon: int = 5,
+        epsilon: float = 1e-3,
+        max_reference: int = 4096,
+        threshold_rule: str = "percentile",
+        threshold_percentile: float = 99.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(
+            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
+        )
+        self.embedding_dim = embedding_dim
+        self.lag = lag
+        self.horizon = horizon
+        self.epsilon = epsilon
+        self.max_reference = max_reference
+
+    def _embed(self, trajectories: Sequence[Trajectory]) -> EpisodeEmbedding:
+        return episode_embedding(trajectories, self.standardizer_, self.embedding_dim, self.lag)
+
+    def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        self.standardizer_ = Standardizer.fit(
+            np.concatenate([t.states for t in trajectories]).astype(np.float64)
+        )
+        embedding = self._embed(trajectories)
+        candidates = np.flatnonzero(embedding.steps_left >= self.horizon)
+        if candidates.size == 0:
+            raise ContractError(
+                f"{self.detector_name} found no fit step with {self.horizon} steps left in its "
+                "episode; lower 'horizon' or fit on longer episodes."
+            )
+        anchors = candidates[seeded_subsample(len(candidates), self.max_reference, self.seed)]
+        self.vectors_ = embedding.vectors
+        self.anchors_ = anchors
+        self.tree_ = cKDTree(embedding.vectors[anchors])
+
+    def _score(self, trajectory: Trajectory) -> np.ndarray:
+        return self._score_many([trajectory])[0]
+
+    def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        embedding = self._embed(trajectories)
+        query = embedding.steps
+        initial, nearest = self.tree_.query(embedding.vectors[query])
+        neighbour = self.anchors_[nearest]
+        horizon = np.minimum(embedding.steps_left[query], self.horizon)
+        total = np.zeros(len(query))
+        for h in range(1, self.horizon + 1):
+            valid = h <= horizon
+            ahead = embedding.vectors[np.where(valid, query + h, query)]
+            distance = np.linalg.norm(ahead - self.vectors_[neighbour + h], axis=1)
+            total += np.where(valid, np.log(distance + self.epsilon), 0.0)
+        scores = total / horizon - np.log(initial + self.epsilon)
+        return split_scores(scores, trajectories)

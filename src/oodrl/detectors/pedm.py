@@ -1,0 +1,175 @@
+"""`pedm`: probabilistic ensemble dynamics model (Haider et al. 2023; SPEC §5).
+
+An ensemble of M Gaussian networks p(s_{t+1} | s_t, a_t) = N(s_t + μ_m, diag σ²_m), trained with
+the Gaussian negative log-likelihood on the fit transitions (each member from its own random
+initialisation and data order). The score is the smallest squared distance between the observed
+next state and K samples of every member:
+
+    z_t = min_{m, k} ‖s_{t+1} − ŝ^{(m,k)}_t‖²,   ŝ^{(m,k)}_t = s_t + μ_m + σ_m ∘ ε^{(m,k)}_t.
+
+Units: the networks model the increment s_{t+1} − s_t standardised per coordinate by its fit-set
+standard deviation, and the distance is measured there, so every coordinate counts in units of
+its typical increment. Inputs are the standardised (s_t, one-hot a_t).
+
+The sampling noise ε^{(m,k)}_t depends only on `seed` and the step index t: scores are
+deterministic, a trajectory's scores do not depend on what it is batched with, and a perturbed
+trajectory and its matched clean one see the same noise (common random numbers).
+
+The alarm threshold defaults to the maximum held-out score (`threshold_rule="max"`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import ClassVar
+
+import numpy as np
+import torch
+
+from oodrl.core.trajectory import Trajectory
+from oodrl.detectors.features import (
+    ActionEncoding,
+    Standardizer,
+    increments,
+    split_scores,
+    stacked,
+    trajectory_features,
+)
+from oodrl.detectors.torch_utils import (
+    EnsembleMLP,
+    TorchDetector,
+    chunked_scores,
+    member_indices,
+    resolve_device,
+    train_ensemble,
+)
+from oodrl.validation import Interval
+
+#: Bounds of the predicted log-variance (standardised units), softly enforced as in PETS.
+_MAX_LOGVAR = 2.0
+_MIN_LOGVAR = -10.0
+
+
+def _mean_and_logvar(outputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    mean, raw = outputs.chunk(2, dim=-1)
+    logvar = _MAX_LOGVAR - torch.nn.functional.softplus(_MAX_LOGVAR - raw)
+    return mean, _MIN_LOGVAR + torch.nn.functional.softplus(logvar - _MIN_LOGVAR)
+
+
+def _gaussian_nll(outputs: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Gaussian negative log-likelihood (up to a constant) of each member, summed over members."""
+    mean, logvar = _mean_and_logvar(outputs)
+    nll = 0.5 * ((target - mean) ** 2 * torch.exp(-logvar) + logvar)
+    return nll.mean(dim=(1, 2)).sum()
+
+
+class Pedm(TorchDetector):
+    """Minimum sampled transition error of a probabilistic dynamics ensemble.
+
+    Parameters
+    ----------
+    n_members : int >= 1, default 5
+        Ensemble size M.
+    n_samples : int >= 1, default 10
+        Samples K drawn from each member per step.
+    hidden_sizes : list of int, default [64, 64]
+        Hidden layer widths of every member.
+    epochs : int >= 1, default 30
+    batch_size : int >= 1, default 256
+    lr : float > 0, default 1e-3
+        Adam learning rate.
+    device : "auto" | "cpu" | "cuda", default "auto"
+    threshold_rule : default "max"
+        The maximum held-out score (SPEC §5); "percentile" uses `threshold_percentile`.
+    """
+
+    name: ClassVar[str] = "pedm"
+
+    _parameter_constraints: ClassVar[dict[str, list]] = {
+        "n_members": [Interval(int, 1, None)],
+        "n_samples": [Interval(int, 1, None)],
+    }
+
+    def __init__(
+        self,
+        *,
+        n_members: int = 5,
+        n_samples: int = 10,
+        hidden_sizes: Sequence[int] = (64, 64),
+        epochs: int = 30,
+        batch_size: int = 256,
+        lr: float = 1e-3,
+        device: str = "auto",
+        threshold_rule: str = "max",
+        threshold_percentile: float = 99.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(
+            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
+        )
+        self.n_members = n_members
+        self.n_samples = n_samples
+        self.hidden_sizes = hidden_sizes
+        self.epochs = epochs
+        self.batch_size = batch_size
+        self.lr = lr
+        self.device = device
+
+    def _inputs(self, trajectory: Trajectory) -> np.ndarray:
+        return trajectory_features(trajectory, "state_action", self.action_encoding_)
+
+    def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        self.action_encoding_ = ActionEncoding.fit(trajectories)
+        inputs = stacked(trajectories, self._inputs)
+        deltas = stacked(trajectories, increments)
+        self.input_standardizer_ = Standardizer.fit(inputs)
+        self.target_standardizer_ = Standardizer.fit(deltas)
+        generator = self._generator()
+        model = EnsembleMLP(
+            self.n_members,
+            inputs.shape[1],
+            2 * deltas.shape[1],
+            self.hidden_sizes,
+            generator,
+        )
+        indices = member_indices(self.n_members, len(inputs), False, generator)
+        self.weights_ = train_ensemble(
+            model,
+            self.input_standardizer_.transform(inputs),
+            self.target_standardizer_.transform(deltas),
+            _gaussian_nll,
+            self._train_settings(),
+            indices,
+            generator,
+        )
+
+    def _noise(self, horizon: int) -> np.ndarray:
+        """ε of shape (horizon, M, K, d_s); row t is the same whatever the horizon."""
+        rng = np.random.default_rng(self.seed)
+        return rng.standard_normal((horizon, self.n_members, self.n_samples, self.state_dim_))
+
+    def _score(self, trajectory: Trajectory) -> np.ndarray:
+        return self._score_many([trajectory])[0]
+
+    def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        device = resolve_device(self.device)
+        inputs = self.input_standardizer_.transform(stacked(trajectories, self._inputs))
+        targets = self.target_standardizer_.transform(stacked(trajectories, increments))
+        steps = np.concatenate([np.arange(t.T) for t in trajectories])
+        noise = torch.as_tensor(self._noise(max(t.T for t in trajectories)), device=device)
+        targets_t = torch.as_tensor(targets, device=device)
+        steps_t = torch.as_tensor(steps, device=device)
+
+        def min_sampled_error(outputs: torch.Tensor, rows: slice) -> torch.Tensor:
+            mean, logvar = _mean_and_logvar(outputs)  # (M, n, d)
+            std = torch.exp(0.5 * logvar)
+            # (n, M, K, d): member m's k-th sample at each row's own step index.
+            samples = (
+                mean.transpose(0, 1)[:, :, None]
+                + std.transpose(0, 1)[:, :, None] * noise[steps_t[rows]]
+            )
+            errors = ((targets_t[rows][:, None, None] - samples) ** 2).sum(dim=-1)
+            return errors.flatten(start_dim=1).min(dim=1).values
+
+        scores = chunked_scores(self.weights_, inputs, self.device, min_sampled_error)
+        return split_scores(scores, trajectories)

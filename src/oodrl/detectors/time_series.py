@@ -1,0 +1,159 @@
+"""`time_series_features`: rolling-window descriptors against their ID distribution (SPEC §5).
+
+For each step t the window of the last L standardised states s_{t−L+1..t} is summarised per
+state coordinate by seven descriptors:
+
+- mean, standard deviation, least-squares slope, lag-1 autocorrelation,
+- range (max − min), mean absolute first difference,
+- spectral centroid: the power-weighted mean frequency (cycles per step, in (0, 0.5]) of the
+  periodogram of the mean-removed window, DC excluded,
+
+and the 7·d_s descriptor vector's distance from the descriptors of every window of the fit
+trajectories is the score: the squared Mahalanobis distance of the standardised descriptors with
+ridge λ (default), or the mean squared robust z-score (median / 1.4826·MAD per descriptor). A
+constant window has no defined autocorrelation or spectrum; both are set to 0 there.
+
+Early steps: z_t for t < L − 1 (no full window yet) is the score of the first full window, the
+one ending at L − 1, so every step has a score from a descriptor vector of the same kind as the fit
+ones. In the protocol the onset lies far beyond L, so this never borrows anomalous steps.
+
+Episode resets: windows may span a reset. Clean fit data contains the same reset jumps, so
+reset-spanning windows are part of the ID descriptor distribution rather than special-cased.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import ClassVar
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from oodrl.core.detector import BaseDetector
+from oodrl.core.trajectory import Trajectory
+from oodrl.detectors.features import GaussianModel, Standardizer, stacked
+from oodrl.errors import ContractError
+from oodrl.validation import Interval, Options
+
+DISTANCES = ("mahalanobis", "robust_z")
+DESCRIPTORS = (
+    "mean",
+    "std",
+    "slope",
+    "autocorrelation",
+    "range",
+    "mean_abs_diff",
+    "spectral_centroid",
+)
+
+#: 1.4826 · MAD estimates the standard deviation of a normal distribution.
+_MAD_TO_SD = 1.4826
+
+
+def _ratio_or_zero(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray:
+    positive = denominator > 0
+    return np.divide(numerator, denominator, out=np.zeros_like(numerator), where=positive)
+
+
+def window_descriptors(series: np.ndarray, window: int) -> np.ndarray:
+    """(T − L + 1, 7·d) descriptors of every length-L window of a (T, d) series.
+
+    Row i describes series[i : i + L]; columns are grouped by descriptor (DESCRIPTORS order),
+    each group holding one column per coordinate.
+    """
+    windows = sliding_window_view(series, window, axis=0)  # (n, d, L)
+    mean = windows.mean(axis=-1)
+    centred = windows - mean[..., None]
+    sum_squares = np.einsum("ndl,ndl->nd", centred, centred)
+    time = np.arange(window) - (window - 1) / 2.0
+    slope = centred @ (time / np.dot(time, time))
+    lag_products = np.einsum("ndl,ndl->nd", centred[..., :-1], centred[..., 1:])
+    power = np.abs(np.fft.rfft(centred, axis=-1)[..., 1:]) ** 2
+    frequencies = np.arange(1, power.shape[-1] + 1) / window
+    return np.concatenate(
+        [
+            mean,
+            np.sqrt(sum_squares / window),
+            slope,
+            _ratio_or_zero(lag_products, sum_squares),
+            np.ptp(windows, axis=-1),
+            np.abs(np.diff(windows, axis=-1)).mean(axis=-1),
+            _ratio_or_zero(power @ frequencies, power.sum(axis=-1)),
+        ],
+        axis=1,
+    )
+
+
+class TimeSeriesFeatures(BaseDetector):
+    """Distance of rolling-window descriptors of the state from their fit distribution.
+
+    Parameters
+    ----------
+    window : int >= 3, default 32
+        Window length L (steps); every trajectory needs T >= L.
+    distance : "mahalanobis" | "robust_z", default "mahalanobis"
+    ridge : float > 0, default 1e-3
+        λ of the Mahalanobis distance (on standardised descriptors).
+    """
+
+    name: ClassVar[str] = "time_series_features"
+
+    _parameter_constraints: ClassVar[dict[str, list]] = {
+        "window": [Interval(int, 3, None)],
+        "distance": [Options(DISTANCES)],
+        "ridge": [Interval(float, 0, None, closed="neither")],
+    }
+
+    def __init__(
+        self,
+        *,
+        window: int = 32,
+        distance: str = "mahalanobis",
+        ridge: float = 1e-3,
+        threshold_rule: str = "percentile",
+        threshold_percentile: float = 99.0,
+        seed: int = 0,
+    ) -> None:
+        super().__init__(
+            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
+        )
+        self.window = window
+        self.distance = distance
+        self.ridge = ridge
+
+    def _descriptors(self, trajectory: Trajectory) -> np.ndarray:
+        if self.window > trajectory.T:
+            raise ContractError(
+                f"{self.detector_name} needs trajectories of at least window={self.window} "
+                f"steps; got T={trajectory.T}. Lower 'window' or use longer trajectories."
+            )
+        series = self.state_standardizer_.transform(trajectory.states.astype(np.float64))
+        return window_descriptors(series, self.window)
+
+    def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        self.state_standardizer_ = Standardizer.fit(
+            stacked(trajectories, lambda t: t.states.astype(np.float64))
+        )
+        descriptors = stacked(trajectories, self._descriptors)
+        if self.distance == "mahalanobis":
+            self.descriptor_standardizer_ = Standardizer.fit(descriptors)
+            self.gaussian_ = GaussianModel.fit(
+                self.descriptor_standardizer_.transform(descriptors), self.ridge
+            )
+        else:
+            median = np.median(descriptors, axis=0)
+            spread = _MAD_TO_SD * np.median(np.abs(descriptors - median), axis=0)
+            fallback = Standardizer.fit(descriptors).scale
+            self.descriptor_standardizer_ = Standardizer(
+                median, np.where(spread > 0, spread, fallback)
+            )
+
+    def _window_scores(self, descriptors: np.ndarray) -> np.ndarray:
+        z = self.descriptor_standardizer_.transform(descriptors)
+        if self.distance == "mahalanobis":
+            return self.gaussian_.squared_distance(z)
+        return np.mean(z**2, axis=1)
+
+    def _score(self, trajectory: Trajectory) -> np.ndarray:
+        scores = self._window_scores(self._descriptors(trajectory))
+        return np.concatenate([np.full(self.window - 1, scores[0]), scores])

@@ -1,0 +1,244 @@
+"""Contract checks every detector must pass, for oodrl's own tests and for plugin authors.
+
+    from oodrl.testing import check_detector, linear_system_trajectories
+
+    data = linear_system_trajectories(10, seed=0)
+    check_detector(lambda: MyDetector(epochs=2), data[:6], data[6:8], data[8:])
+
+Each `check_*` function raises AssertionError (or the unexpected oodrl error) on a violation
+and can be called on its own; `check_detector` runs them all. A factory, not an instance, is
+passed where a check needs fresh detectors: it must return a new, unfitted detector with the
+same parameters (and seed) on every call.
+"""
+
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from oodrl.core.detector import BaseDetector, threshold_from_scores
+from oodrl.core.trajectory import Trajectory
+from oodrl.errors import ContractError, NotFittedError
+from oodrl.validation import constraints_of, constructor_params
+
+DetectorFactory = Callable[[], BaseDetector]
+
+#: Tolerance between batched and one-at-a-time scores (batching may change float rounding).
+BATCH_RTOL = 1e-5
+BATCH_ATOL = 1e-8
+
+
+def linear_system_trajectories(
+    n: int,
+    *,
+    T: int = 120,  # noqa: N803 - T is the protocol's name for the horizon
+    state_dim: int = 4,
+    n_actions: int = 3,
+    episode_length: int = 80,
+    seed: int = 0,
+) -> list[Trajectory]:
+    """Cheap deterministic trajectories of a noisy linear system with discrete actions.
+
+    s_{t+1} = A s_t + B[a_t] + 0.1·N(0, I), A a contraction with some rotation, and a_t from a
+    noisy linear policy. Episodes last `episode_length` ± 25% steps; as in the collector, an
+    episode end sets `dones[t]`, `next_states[t]` is the terminal observation and the stream
+    continues from a fresh initial state. The system (A, B, policy) depends on `seed` only;
+    trajectory i draws from its own generator, so the first k of n trajectories do not depend
+    on n.
+    """
+    system = np.random.default_rng([seed, 0])
+    dynamics = 0.9 * np.linalg.qr(system.standard_normal((state_dim, state_dim)))[0]
+    action_effects = 0.3 * system.standard_normal((n_actions, state_dim))
+    policy = system.standard_normal((n_actions, state_dim))
+    trajectories = []
+    for index in range(n):
+        rng = np.random.default_rng([seed, 1, index])
+        states = np.empty((T, state_dim))
+        next_states = np.empty((T, state_dim))
+        actions = np.empty(T, dtype=np.int64)
+        dones = np.zeros(T, dtype=bool)
+        episode_index = np.empty(T, dtype=np.int64)
+        episode = 0
+        state, remaining = _initial(rng, state_dim, episode_length)
+        for t in range(T):
+            states[t] = state
+            actions[t] = np.argmax(policy @ state + rng.gumbel(size=n_actions))
+            next_states[t] = (
+                dynamics @ state + action_effects[actions[t]] + 0.1 * rng.standard_normal(state_dim)
+            )
+            episode_index[t] = episode
+            remaining -= 1
+            dones[t] = remaining == 0
+            if dones[t]:
+                state, remaining = _initial(rng, state_dim, episode_length)
+                episode += 1
+            else:
+                state = next_states[t]
+        trajectories.append(
+            Trajectory(
+                states=states.astype(np.float32),
+                actions=actions,
+                rewards=-(states**2).sum(axis=1).astype(np.float32),
+                next_states=next_states.astype(np.float32),
+                dones=dones,
+                info={"episode_index": episode_index, "seed": index},
+            )
+        )
+    return trajectories
+
+
+def _initial(
+    rng: np.random.Generator, state_dim: int, episode_length: int
+) -> tuple[np.ndarray, int]:
+    """A fresh episode's initial state and its length."""
+    length = int(rng.integers(int(0.75 * episode_length), int(1.25 * episode_length) + 1))
+    return rng.standard_normal(state_dim), max(length, 1)
+
+
+def with_extra_state_dimension(trajectory: Trajectory) -> Trajectory:
+    """The trajectory with one more (zero) state coordinate: a wrong-dimension input."""
+    pad = np.zeros((trajectory.T, 1), dtype=np.float32)
+    return trajectory.replace(
+        states=np.hstack([trajectory.states, pad]),
+        next_states=np.hstack([trajectory.next_states, pad]),
+    )
+
+
+def check_parameters(detector: BaseDetector) -> None:
+    """A registered name, constraints for every parameter, defaults that validate, a clone."""
+    cls = type(detector)
+    assert cls.name, f"{cls.__name__} has no class attribute 'name'."
+    missing = set(constructor_params(cls)) - set(constraints_of(cls))
+    assert not missing, f"{cls.__name__} declares no constraints for {sorted(missing)}."
+    detector.validate_params()
+    clone = cls.from_params(detector.get_params())
+    assert clone.get_params() == detector.get_params(), "from_params(get_params()) differs."
+
+
+def check_not_fitted(detector: BaseDetector, trajectory: Trajectory) -> None:
+    """Scoring or calibrating before `fit` raises NotFittedError."""
+    for use in (detector.score, lambda t: detector.calibrate([t])):
+        try:
+            use(trajectory)
+        except NotFittedError:
+            continue
+        raise AssertionError(f"{detector.detector_name} did not raise NotFittedError before fit.")
+
+
+def check_scores(detector: BaseDetector, trajectories: Sequence[Trajectory]) -> None:
+    """Finite float64 scores of shape (T,) for every trajectory."""
+    for trajectory, output in zip(trajectories, detector.score_many(trajectories), strict=True):
+        assert output.scores.shape == (trajectory.T,), f"scores shape {output.scores.shape}"
+        assert output.scores.dtype == np.float64, f"scores dtype {output.scores.dtype}"
+        assert np.isfinite(output.scores).all(), "scores contain NaN or inf"
+
+
+def check_reproducible(
+    factory: DetectorFactory,
+    fit_trajectories: Sequence[Trajectory],
+    trajectories: Sequence[Trajectory],
+) -> None:
+    """Two fits with the same parameters and seed give identical scores."""
+    first = factory().fit(fit_trajectories).score_many(trajectories)
+    second = factory().fit(fit_trajectories).score_many(trajectories)
+    for a, b in zip(first, second, strict=True):
+        np.testing.assert_array_equal(a.scores, b.scores, err_msg="refit changed the scores")
+
+
+def check_score_is_pure(detector: BaseDetector, trajectories: Sequence[Trajectory]) -> None:
+    """Scoring leaves the detector unchanged (same pickle) and gives the same scores twice."""
+    before = pickle.dumps(detector)
+    first = [o.scores for o in detector.score_many(trajectories)]
+    second = [detector.score(t).scores for t in trajectories]
+    assert pickle.dumps(detector) == before, f"{detector.detector_name}.score changed the detector."
+    for one, batched in zip(second, first, strict=True):
+        np.testing.assert_allclose(
+            one,
+            batched,
+            rtol=BATCH_RTOL,
+            atol=BATCH_ATOL,
+            err_msg="score(t) differs from score_many([..., t, ...])",
+        )
+    repeat = [o.scores for o in detector.score_many(trajectories)]
+    for a, b in zip(first, repeat, strict=True):
+        np.testing.assert_array_equal(a, b, err_msg="scoring twice gave different scores")
+
+
+def check_state_dim(detector: BaseDetector, trajectory: Trajectory) -> None:
+    """A trajectory of another state dimension than the fit one raises ContractError."""
+    try:
+        detector.score(with_extra_state_dimension(trajectory))
+    except ContractError:
+        return
+    raise AssertionError(f"{detector.detector_name} scored a wrong-dimension trajectory.")
+
+
+def check_threshold(detector: BaseDetector, calibration: Sequence[Trajectory]) -> None:
+    """`calibrate` sets the declared rule's threshold of the calibration scores; alarms follow."""
+    scores = np.concatenate([o.scores for o in detector.score_many(calibration)])
+    detector.calibrate(calibration)
+    expected = threshold_from_scores(scores, detector.threshold_rule, detector.threshold_percentile)
+    assert detector.threshold_ == expected, f"threshold {detector.threshold_} != {expected}"
+    output = detector.score(calibration[0])
+    assert output.threshold == expected
+    np.testing.assert_array_equal(output.alarms, output.scores >= expected)
+
+
+def check_pickle_roundtrip(detector: BaseDetector, trajectories: Sequence[Trajectory]) -> None:
+    """A pickled and reloaded detector scores exactly like the original."""
+    clone = pickle.loads(pickle.dumps(detector))
+    for a, b in zip(detector.score_many(trajectories), clone.score_many(trajectories), strict=True):
+        np.testing.assert_array_equal(a.scores, b.scores, err_msg="unpickled detector differs")
+
+
+def check_global_random_state(
+    factory: DetectorFactory,
+    fit_trajectories: Sequence[Trajectory],
+    trajectories: Sequence[Trajectory],
+) -> None:
+    """Fitting and scoring leave numpy's and (if loaded) torch's global random state untouched."""
+    # The legacy global state is exactly what must stay untouched, hence NPY002.
+    numpy_before = pickle.dumps(np.random.get_state())  # noqa: NPY002
+    torch = sys.modules.get("torch")
+    torch_before = torch.get_rng_state() if torch is not None else None
+    factory().fit(fit_trajectories).score_many(trajectories)
+    numpy_after = pickle.dumps(np.random.get_state())  # noqa: NPY002
+    assert numpy_after == numpy_before, "numpy's global RNG was used."
+    if torch is not None:
+        assert torch.equal(torch.get_rng_state(), torch_before), "torch's global RNG was used."
+
+
+def check_torch_free_import(detector_class: type[BaseDetector]) -> None:
+    """A detector with `uses_torch = False` imports without importing torch (fresh process)."""
+    if detector_class.uses_torch:
+        return
+    module = detector_class.__module__
+    code = f"import sys, {module}; sys.exit('torch' in sys.modules)"
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, f"importing {module} imported torch. {result.stderr}"
+
+
+def check_detector(
+    factory: DetectorFactory,
+    fit_trajectories: Sequence[Trajectory],
+    calibration_trajectories: Sequence[Trajectory],
+    eval_trajectories: Sequence[Trajectory],
+) -> None:
+    """Run every contract check on one detector configuration."""
+    fresh = factory()
+    check_parameters(fresh)
+    check_torch_free_import(type(fresh))
+    check_not_fitted(fresh, eval_trajectories[0])
+    fitted = factory()
+    assert fitted.fit(fit_trajectories) is fitted, "fit must return the detector itself"
+    check_scores(fitted, eval_trajectories)
+    check_reproducible(factory, fit_trajectories, eval_trajectories)
+    check_global_random_state(factory, fit_trajectories, eval_trajectories)
+    check_score_is_pure(fitted, eval_trajectories)
+    check_state_dim(fitted, eval_trajectories[0])
+    check_threshold(fitted, calibration_trajectories)
+    check_pickle_roundtrip(fitted, eval_trajectories)
