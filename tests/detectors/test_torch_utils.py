@@ -3,10 +3,9 @@
 import numpy as np
 import torch
 
+from oodrl.detectors.neural import EnsembleWeights, TrainSettings
 from oodrl.detectors.torch_utils import (
     EnsembleMLP,
-    EnsembleWeights,
-    TrainSettings,
     chunked_scores,
     member_indices,
     member_mse,
@@ -22,14 +21,18 @@ def test_auto_device_is_cuda_only_when_available():
 
 def test_weights_round_trip_and_members_are_independent():
     model = EnsembleMLP(3, 4, 2, [8, 8], torch.Generator().manual_seed(0))
-    weights = EnsembleWeights.of(model)
+    weights = model.numpy_weights()
     x = torch.randn(3, 5, 4, generator=torch.Generator().manual_seed(1))
     with torch.no_grad():
-        torch.testing.assert_close(weights.module(torch.device("cpu"))(x), model(x))
+        cpu = torch.device("cpu")
+        torch.testing.assert_close(EnsembleMLP.from_weights(weights, cpu)(x), model(x))
         # Member 1 alone gives the same output as within the ensemble.
-        single = EnsembleWeights(
-            tuple(w[1:2] for w in weights.weights), tuple(b[1:2] for b in weights.biases)
-        ).module(torch.device("cpu"))
+        single = EnsembleMLP.from_weights(
+            EnsembleWeights(
+                tuple(w[1:2] for w in weights.weights), tuple(b[1:2] for b in weights.biases)
+            ),
+            cpu,
+        )
         torch.testing.assert_close(single(x[1:2])[0], model(x)[1])
 
 
@@ -52,7 +55,7 @@ def test_training_is_seeded_and_reduces_the_loss():
     def mse(outputs, rows):
         return ((outputs - torch.as_tensor(targets[rows])) ** 2).sum(dim=-1).mean(dim=0)
 
-    untrained = EnsembleWeights.of(EnsembleMLP(2, 3, 2, [16], torch.Generator().manual_seed(0)))
+    untrained = EnsembleMLP(2, 3, 2, [16], torch.Generator().manual_seed(0)).numpy_weights()
     assert (
         chunked_scores(first, inputs, "cpu", mse).mean()
         < 0.1 * chunked_scores(untrained, inputs, "cpu", mse).mean()

@@ -11,7 +11,6 @@ from collections.abc import Sequence
 from typing import ClassVar
 
 import numpy as np
-import torch
 
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
@@ -22,15 +21,7 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.detectors.torch_utils import (
-    EnsembleMLP,
-    TorchDetector,
-    chunked_scores,
-    member_indices,
-    member_mse,
-    resolve_device,
-    train_ensemble,
-)
+from oodrl.detectors.neural import TorchDetector
 from oodrl.validation import Interval, Options
 
 
@@ -86,10 +77,18 @@ class Autoencoder(TorchDetector):
         return trajectory_features(trajectory, self.features, self.action_encoding_)
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        from oodrl.detectors.torch_utils import (
+            EnsembleMLP,
+            member_indices,
+            member_mse,
+            seeded_generator,
+            train_ensemble,
+        )
+
         self.action_encoding_ = ActionEncoding.fit(trajectories)
         x = stacked(trajectories, self._features)
         self.standardizer_ = Standardizer.fit(x)
-        generator = self._generator()
+        generator = seeded_generator(self.seed)
         layers = [*self.hidden_sizes, self.latent_dim, *reversed(self.hidden_sizes)]
         model = EnsembleMLP(1, x.shape[1], x.shape[1], layers, generator)
         z = self.standardizer_.transform(x)
@@ -103,10 +102,11 @@ class Autoencoder(TorchDetector):
             generator,
         )
 
-    def _score(self, trajectory: Trajectory) -> np.ndarray:
-        return self._score_many([trajectory])[0]
-
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        import torch
+
+        from oodrl.detectors.torch_utils import chunked_scores, resolve_device
+
         z = self.standardizer_.transform(stacked(trajectories, self._features))
         z_t = torch.as_tensor(z, device=resolve_device(self.device))
 

@@ -146,9 +146,6 @@ class Cusum(BaseDetector):
             restarts[1:] = trajectory.dones[:-1]
         return restarts
 
-    def _score(self, trajectory: Trajectory) -> np.ndarray:
-        return self._score_many([trajectory])[0]
-
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
         drift = self._residuals(trajectories) - self.residual_mean_ - self.slack_
         scores = cusum(drift, stacked(trajectories, self._restarts))

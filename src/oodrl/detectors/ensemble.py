@@ -13,10 +13,9 @@ inputs the ensemble has not learned, not transitions that contradict what it has
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
 import numpy as np
-import torch
 
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
@@ -27,15 +26,11 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.detectors.torch_utils import (
-    EnsembleMLP,
-    TorchDetector,
-    chunked_scores,
-    member_indices,
-    member_mse,
-    train_ensemble,
-)
+from oodrl.detectors.neural import TorchDetector
 from oodrl.validation import Interval
+
+if TYPE_CHECKING:
+    import torch
 
 
 class EnsembleDisagreement(TorchDetector):
@@ -85,12 +80,20 @@ class EnsembleDisagreement(TorchDetector):
         return trajectory_features(trajectory, "state_action", self.action_encoding_)
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        from oodrl.detectors.torch_utils import (
+            EnsembleMLP,
+            member_indices,
+            member_mse,
+            seeded_generator,
+            train_ensemble,
+        )
+
         self.action_encoding_ = ActionEncoding.fit(trajectories)
         inputs = stacked(trajectories, self._inputs)
         deltas = stacked(trajectories, increments)
         self.input_standardizer_ = Standardizer.fit(inputs)
         targets = Standardizer.fit(deltas).transform(deltas)
-        generator = self._generator()
+        generator = seeded_generator(self.seed)
         model = EnsembleMLP(
             self.n_members, inputs.shape[1], targets.shape[1], self.hidden_sizes, generator
         )
@@ -104,10 +107,9 @@ class EnsembleDisagreement(TorchDetector):
             generator,
         )
 
-    def _score(self, trajectory: Trajectory) -> np.ndarray:
-        return self._score_many([trajectory])[0]
-
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        from oodrl.detectors.torch_utils import chunked_scores
+
         inputs = self.input_standardizer_.transform(stacked(trajectories, self._inputs))
 
         def disagreement(outputs: torch.Tensor, rows: slice) -> torch.Tensor:

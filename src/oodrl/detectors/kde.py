@@ -127,9 +127,6 @@ class KdeDensity(BaseDetector):
         self.reference_ = self.standardizer_.transform(x[keep])
         self.bandwidth_ = bandwidth_of(self.bandwidth, *self.reference_.shape)
 
-    def _score(self, trajectory: Trajectory) -> np.ndarray:
-        return self._score_many([trajectory])[0]
-
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
         x = self.standardizer_.transform(stacked(trajectories, self._features))
         log_density = gaussian_kde_logpdf(x, self.reference_, self.bandwidth_)

@@ -30,7 +30,6 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from oodrl.core.detector import BaseDetector
 from oodrl.core.trajectory import Trajectory
@@ -135,6 +134,9 @@ class LyapunovDivergence(BaseDetector):
         return episode_embedding(trajectories, self.standardizer_, self.embedding_dim, self.lag)
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        # Imported here: scipy.spatial costs every stage that only validates params ~0.3 s.
+        from scipy.spatial import cKDTree
+
         self.standardizer_ = Standardizer.fit(
             np.concatenate([t.states for t in trajectories]).astype(np.float64)
         )
@@ -149,9 +151,6 @@ class LyapunovDivergence(BaseDetector):
         self.vectors_ = embedding.vectors
         self.anchors_ = anchors
         self.tree_ = cKDTree(embedding.vectors[anchors])
-
-    def _score(self, trajectory: Trajectory) -> np.ndarray:
-        return self._score_many([trajectory])[0]
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
         embedding = self._embed(trajectories)

@@ -70,9 +70,6 @@ class MahalanobisDistance(BaseDetector):
         self.standardizer_ = Standardizer.fit(x)
         self.gaussian_ = GaussianModel.fit(self.standardizer_.transform(x), self.ridge)
 
-    def _score(self, trajectory: Trajectory) -> np.ndarray:
-        return self._score_many([trajectory])[0]
-
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
         x = self.standardizer_.transform(stacked(trajectories, self._features))
         return split_scores(self.gaussian_.squared_distance(x), trajectories)

@@ -24,7 +24,6 @@ from collections.abc import Sequence
 from typing import ClassVar
 
 import numpy as np
-import torch
 
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
@@ -35,32 +34,8 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.detectors.torch_utils import (
-    EnsembleMLP,
-    TorchDetector,
-    chunked_scores,
-    member_indices,
-    resolve_device,
-    train_ensemble,
-)
+from oodrl.detectors.neural import TorchDetector
 from oodrl.validation import Interval
-
-#: Bounds of the predicted log-variance (standardised units), softly enforced as in PETS.
-_MAX_LOGVAR = 2.0
-_MIN_LOGVAR = -10.0
-
-
-def _mean_and_logvar(outputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    mean, raw = outputs.chunk(2, dim=-1)
-    logvar = _MAX_LOGVAR - torch.nn.functional.softplus(_MAX_LOGVAR - raw)
-    return mean, _MIN_LOGVAR + torch.nn.functional.softplus(logvar - _MIN_LOGVAR)
-
-
-def _gaussian_nll(outputs: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
-    """Gaussian negative log-likelihood (up to a constant) of each member, summed over members."""
-    mean, logvar = _mean_and_logvar(outputs)
-    nll = 0.5 * ((target - mean) ** 2 * torch.exp(-logvar) + logvar)
-    return nll.mean(dim=(1, 2)).sum()
 
 
 class Pedm(TorchDetector):
@@ -119,12 +94,20 @@ class Pedm(TorchDetector):
         return trajectory_features(trajectory, "state_action", self.action_encoding_)
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
+        from oodrl.detectors.torch_utils import (
+            EnsembleMLP,
+            member_gaussian_nll,
+            member_indices,
+            seeded_generator,
+            train_ensemble,
+        )
+
         self.action_encoding_ = ActionEncoding.fit(trajectories)
         inputs = stacked(trajectories, self._inputs)
         deltas = stacked(trajectories, increments)
         self.input_standardizer_ = Standardizer.fit(inputs)
         self.target_standardizer_ = Standardizer.fit(deltas)
-        generator = self._generator()
+        generator = seeded_generator(self.seed)
         model = EnsembleMLP(
             self.n_members,
             inputs.shape[1],
@@ -137,7 +120,7 @@ class Pedm(TorchDetector):
             model,
             self.input_standardizer_.transform(inputs),
             self.target_standardizer_.transform(deltas),
-            _gaussian_nll,
+            member_gaussian_nll,
             self._train_settings(),
             indices,
             generator,
@@ -148,10 +131,15 @@ class Pedm(TorchDetector):
         rng = np.random.default_rng(self.seed)
         return rng.standard_normal((horizon, self.n_members, self.n_samples, self.state_dim_))
 
-    def _score(self, trajectory: Trajectory) -> np.ndarray:
-        return self._score_many([trajectory])[0]
-
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        import torch
+
+        from oodrl.detectors.torch_utils import (
+            chunked_scores,
+            gaussian_mean_and_logvar,
+            resolve_device,
+        )
+
         device = resolve_device(self.device)
         inputs = self.input_standardizer_.transform(stacked(trajectories, self._inputs))
         targets = self.target_standardizer_.transform(stacked(trajectories, increments))
@@ -161,7 +149,7 @@ class Pedm(TorchDetector):
         steps_t = torch.as_tensor(steps, device=device)
 
         def min_sampled_error(outputs: torch.Tensor, rows: slice) -> torch.Tensor:
-            mean, logvar = _mean_and_logvar(outputs)  # (M, n, d)
+            mean, logvar = gaussian_mean_and_logvar(outputs)  # (M, n, d)
             std = torch.exp(0.5 * logvar)
             # (n, M, K, d): member m's k-th sample at each row's own step index.
             samples = (

@@ -1,12 +1,13 @@
 """The small torch toolkit of the neural detectors: an ensemble MLP, its training loop, devices.
 
-Imported only by the torch detectors (`pedm`, `autoencoder`, `ensemble_disagreement`), never by
-the package `__init__`, so numpy-only detectors start without torch.
+Imported only inside the neural detectors' `_fit` and `_score_many` (their modules, parameters
+and pickles are torch-free, see `oodrl.detectors.neural`), so no stage imports torch unless it
+fits or scores a neural detector.
 
 An ensemble of M members is one module whose weights carry a leading member axis, so all members
 train and predict in one batched matrix product (a single network is M = 1). A fitted detector
-keeps the weights as numpy arrays (`EnsembleWeights`): pickles are device-free and
-byte-reproducible, and scoring rebuilds a module without touching the detector.
+keeps the weights as numpy arrays (`EnsembleWeights`), and scoring rebuilds a module from them
+without touching the detector.
 
 Reproducibility: weights are initialised and data orders drawn from a `torch.Generator` seeded
 with the detector's seed; nothing reads the global torch RNG. On one machine and device the same
@@ -17,18 +18,12 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
-from typing import ClassVar
 
 import numpy as np
 import torch
 from torch import nn
 
-from oodrl.core.detector import BaseDetector
-from oodrl.validation import Interval, Options
-from oodrl.validation import Sequence as SequenceOf
-
-DEVICES = ("auto", "cpu", "cuda")
+from oodrl.detectors.neural import EnsembleWeights, TrainSettings
 
 #: Rows per forward pass when predicting, to bound memory on long score batches.
 PREDICT_CHUNK = 8192
@@ -39,6 +34,11 @@ def resolve_device(device: str) -> torch.device:
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(device)
+
+
+def seeded_generator(seed: int) -> torch.Generator:
+    """A CPU generator seeded from a detector's `seed`: initial weights, bootstrap, data order."""
+    return torch.Generator().manual_seed(seed)
 
 
 class EnsembleMLP(nn.Module):
@@ -64,6 +64,29 @@ class EnsembleMLP(nn.Module):
             self.weights.append(nn.Parameter(weight))
             self.biases.append(nn.Parameter(bias))
 
+    @classmethod
+    def from_weights(cls, weights: EnsembleWeights, device: torch.device) -> EnsembleMLP:
+        """A fresh module holding copies of `weights` on `device`, in eval mode."""
+        n_members, in_dim, _ = weights.weights[0].shape
+        out_dim = weights.weights[-1].shape[2]
+        hidden = [w.shape[2] for w in weights.weights[:-1]]
+        # A private generator for the throwaway initialisation: the global RNG stays untouched.
+        model = cls(n_members, in_dim, out_dim, hidden, torch.Generator())
+        with torch.no_grad():
+            for param, array in zip(
+                [*model.weights, *model.biases], [*weights.weights, *weights.biases], strict=True
+            ):
+                param.copy_(torch.from_numpy(array))
+        return model.to(device).eval()
+
+    def numpy_weights(self) -> EnsembleWeights:
+        """Copies of the weights as numpy arrays (what a fitted detector stores)."""
+
+        def arrays(params: nn.ParameterList) -> tuple[np.ndarray, ...]:
+            return tuple(p.detach().cpu().numpy().copy() for p in params)
+
+        return EnsembleWeights(arrays(self.weights), arrays(self.biases))
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         last = len(self.weights) - 1
         for index, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
@@ -71,35 +94,6 @@ class EnsembleMLP(nn.Module):
             if index < last:
                 x = nn.functional.silu(x)
         return x
-
-
-@dataclass(frozen=True)
-class EnsembleWeights:
-    """The fitted weights of an `EnsembleMLP` as numpy arrays (what a detector stores)."""
-
-    weights: tuple[np.ndarray, ...]
-    biases: tuple[np.ndarray, ...]
-
-    @classmethod
-    def of(cls, model: EnsembleMLP) -> EnsembleWeights:
-        def arrays(params: nn.ParameterList) -> tuple[np.ndarray, ...]:
-            return tuple(p.detach().cpu().numpy().copy() for p in params)
-
-        return cls(arrays(model.weights), arrays(model.biases))
-
-    def module(self, device: torch.device) -> EnsembleMLP:
-        """A fresh module holding copies of these weights on `device`."""
-        n_members, in_dim, _ = self.weights[0].shape
-        out_dim = self.weights[-1].shape[2]
-        hidden = [w.shape[2] for w in self.weights[:-1]]
-        # A private generator for the throwaway initialisation: the global RNG stays untouched.
-        model = EnsembleMLP(n_members, in_dim, out_dim, hidden, torch.Generator())
-        with torch.no_grad():
-            for param, array in zip(
-                [*model.weights, *model.biases], [*self.weights, *self.biases], strict=True
-            ):
-                param.copy_(torch.from_numpy(array))
-        return model.to(device).eval()
 
 
 def member_indices(
@@ -119,16 +113,6 @@ def _minibatches(
     shuffled = torch.gather(indices, 1, order)
     for start in range(0, indices.shape[1], batch_size):
         yield shuffled[:, start : start + batch_size]
-
-
-@dataclass(frozen=True)
-class TrainSettings:
-    """Optimisation settings shared by the neural detectors (Adam, a fixed number of epochs)."""
-
-    epochs: int
-    batch_size: int
-    lr: float
-    device: str
 
 
 def train_ensemble(
@@ -157,7 +141,7 @@ def train_ensemble(
             loss = loss_fn(model(x[batch]), y[batch])
             loss.backward()
             optimiser.step()
-    return EnsembleWeights.of(model)
+    return model.numpy_weights()
 
 
 def chunked_scores(
@@ -172,7 +156,7 @@ def chunked_scores(
     `inputs[rows]` and returns their (n,) scores; chunking bounds memory on long score batches.
     """
     target = resolve_device(device)
-    model = weights.module(target)
+    model = EnsembleMLP.from_weights(weights, target)
     n_members = weights.weights[0].shape[0]
     scores = []
     with torch.inference_mode():
@@ -189,32 +173,20 @@ def member_mse(output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return ((output - target) ** 2).mean(dim=(1, 2)).sum()
 
 
-class TorchDetector(BaseDetector):
-    """Parameters and helpers every neural detector shares; subclasses declare the defaults.
+#: Bounds of a Gaussian head's log-variance (standardised units), softly enforced as in PETS.
+MAX_LOGVAR = 2.0
+MIN_LOGVAR = -10.0
 
-    `hidden_sizes` (list of ints), `epochs`, `batch_size`, `lr` (Adam) and `device`
-    ("auto" = CUDA when available, else CPU) are validated here once for all of them.
-    """
 
-    uses_torch: ClassVar[bool] = True
+def gaussian_mean_and_logvar(outputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split (…, 2d) Gaussian-head outputs into the mean and the softly bounded log-variance."""
+    mean, raw = outputs.chunk(2, dim=-1)
+    logvar = MAX_LOGVAR - nn.functional.softplus(MAX_LOGVAR - raw)
+    return mean, MIN_LOGVAR + nn.functional.softplus(logvar - MIN_LOGVAR)
 
-    _parameter_constraints: ClassVar[dict[str, list]] = {
-        "hidden_sizes": [SequenceOf(Interval(int, 1, None))],
-        "epochs": [Interval(int, 1, None)],
-        "batch_size": [Interval(int, 1, None)],
-        "lr": [Interval(float, 0, None, closed="neither")],
-        "device": [Options(DEVICES)],
-    }
 
-    hidden_sizes: Sequence[int]
-    epochs: int
-    batch_size: int
-    lr: float
-    device: str
-
-    def _train_settings(self) -> TrainSettings:
-        return TrainSettings(self.epochs, self.batch_size, self.lr, self.device)
-
-    def _generator(self) -> torch.Generator:
-        """A CPU generator seeded from `seed`: initial weights, bootstrap and data order."""
-        return torch.Generator().manual_seed(self.seed)
+def member_gaussian_nll(output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Gaussian negative log-likelihood (up to a constant) of each member, summed over members."""
+    mean, logvar = gaussian_mean_and_logvar(output)
+    nll = 0.5 * ((target - mean) ** 2 * torch.exp(-logvar) + logvar)
+    return nll.mean(dim=(1, 2)).sum()
