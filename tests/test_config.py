@@ -160,3 +160,13 @@ def test_check_params_subprocess_has_no_traceback(tmp_path, default_params):
     assert done.returncode == 2
     assert done.stderr.strip().count("\n") == 0
     assert "env.T" in done.stderr and "Traceback" not in done.stderr
+
+
+def test_validating_params_imports_no_heavy_library(repo_root):
+    """Every stage validates params.yaml on start: that must not cost torch's import."""
+    code = (
+        "import sys; from oodrl.config import load_params; load_params('params.yaml'); "
+        "heavy = {'torch', 'sklearn', 'scipy', 'gymnasium', 'zarr'} & set(sys.modules); "
+        "assert not heavy, heavy"
+    )
+    subprocess.run([sys.executable, "-c", code], cwd=repo_root, check=True)
