@@ -186,13 +186,19 @@ def plot_score_traces(traces: Sequence[Mapping[str, Any]], path: str | Path) -> 
 def _scale_y(axes: Any, values: np.ndarray) -> None:
     """Log (all positive) or symlog y-axis when the largest |score| dwarfs the typical one."""
     magnitude = np.abs(values)
-    typical = max(float(np.median(magnitude)), 1e-12)
+    positive = magnitude[magnitude > 0]
+    if positive.size == 0:
+        return
+    # Zeros (e.g. CUSUM before any drift) must not drag the linear range down to nothing.
+    typical = max(float(np.median(positive)), float(positive.max()) * 1e-6)
     if magnitude.max() / typical <= LOG_RANGE:
         return
     if (values > 0).all():
         axes.set_yscale("log")
     else:
         axes.set_yscale("symlog", linthresh=typical)
+        if values.min() >= 0:
+            axes.set_ylim(bottom=0)
 
 
 def _write_csv(path: Path, header: Sequence[str], rows: Sequence[Sequence[Any]]) -> Path:
