@@ -60,7 +60,7 @@ class BaseDetector(Component):
     """
 
     name: ClassVar[str] = ""
-    #: Whether the detector needs torch (its stage then pays torch's import time).
+    #: Whether fitting the detector needs torch (its fit stage then pays the import).
     uses_torch: ClassVar[bool] = False
 
     _parameter_constraints: ClassVar[dict[str, list]] = {

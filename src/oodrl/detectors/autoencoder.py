@@ -21,7 +21,7 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.detectors.neural import TorchDetector
+from oodrl.detectors.neural import TorchDetector, chunked_scores
 from oodrl.validation import Interval, Options
 
 
@@ -39,6 +39,7 @@ class Autoencoder(TorchDetector):
     batch_size : int >= 1, default 256
     lr : float > 0, default 3e-3
     device : "auto" | "cpu" | "cuda", default "auto"
+        Where the network trains ("auto" = CUDA when available); scoring runs in numpy.
     """
 
     name: ClassVar[str] = "autoencoder"
@@ -103,15 +104,10 @@ class Autoencoder(TorchDetector):
         )
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
-        import torch
-
-        from oodrl.detectors.torch_utils import chunked_scores, resolve_device
-
         z = self.standardizer_.transform(stacked(trajectories, self._features))
-        z_t = torch.as_tensor(z, device=resolve_device(self.device))
 
-        def reconstruction_error(outputs: torch.Tensor, rows: slice) -> torch.Tensor:
-            return ((outputs[0] - z_t[rows]) ** 2).sum(dim=-1)
+        def reconstruction_error(outputs: np.ndarray, rows: slice) -> np.ndarray:
+            return ((outputs[0] - z[rows]) ** 2).sum(axis=-1)
 
-        scores = chunked_scores(self.weights_, z, self.device, reconstruction_error)
+        scores = chunked_scores(self.weights_, z, reconstruction_error)
         return split_scores(scores, trajectories)

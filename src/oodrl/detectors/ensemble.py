@@ -13,7 +13,7 @@ inputs the ensemble has not learned, not transitions that contradict what it has
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
@@ -26,11 +26,8 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.detectors.neural import TorchDetector
+from oodrl.detectors.neural import TorchDetector, chunked_scores
 from oodrl.validation import Interval
-
-if TYPE_CHECKING:
-    import torch
 
 
 class EnsembleDisagreement(TorchDetector):
@@ -45,6 +42,7 @@ class EnsembleDisagreement(TorchDetector):
     batch_size : int >= 1, default 256
     lr : float > 0, default 1e-3
     device : "auto" | "cpu" | "cuda", default "auto"
+        Where the networks train ("auto" = CUDA when available); scoring runs in numpy.
     """
 
     name: ClassVar[str] = "ensemble_disagreement"
@@ -108,13 +106,11 @@ class EnsembleDisagreement(TorchDetector):
         )
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
-        from oodrl.detectors.torch_utils import chunked_scores
-
         inputs = self.input_standardizer_.transform(stacked(trajectories, self._inputs))
 
-        def disagreement(outputs: torch.Tensor, rows: slice) -> torch.Tensor:
-            spread = outputs - outputs.mean(dim=0, keepdim=True)
-            return (spread**2).sum(dim=-1).mean(dim=0)
+        def disagreement(outputs: np.ndarray, rows: slice) -> np.ndarray:
+            spread = outputs - outputs.mean(axis=0, keepdims=True)
+            return (spread**2).sum(axis=-1).mean(axis=0)
 
-        scores = chunked_scores(self.weights_, inputs, self.device, disagreement)
+        scores = chunked_scores(self.weights_, inputs, disagreement)
         return split_scores(scores, trajectories)

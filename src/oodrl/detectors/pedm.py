@@ -34,7 +34,7 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.detectors.neural import TorchDetector
+from oodrl.detectors.neural import TorchDetector, chunked_scores, gaussian_mean_and_logvar
 from oodrl.validation import Interval
 
 
@@ -54,6 +54,7 @@ class Pedm(TorchDetector):
     lr : float > 0, default 1e-3
         Adam learning rate.
     device : "auto" | "cpu" | "cuda", default "auto"
+        Where the networks train ("auto" = CUDA when available); scoring runs in numpy.
     threshold_rule : default "max"
         The maximum held-out score (SPEC §5); "percentile" uses `threshold_percentile`.
     """
@@ -132,32 +133,22 @@ class Pedm(TorchDetector):
         return rng.standard_normal((horizon, self.n_members, self.n_samples, self.state_dim_))
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
-        import torch
-
-        from oodrl.detectors.torch_utils import (
-            chunked_scores,
-            gaussian_mean_and_logvar,
-            resolve_device,
-        )
-
-        device = resolve_device(self.device)
         inputs = self.input_standardizer_.transform(stacked(trajectories, self._inputs))
         targets = self.target_standardizer_.transform(stacked(trajectories, increments))
         steps = np.concatenate([np.arange(t.T) for t in trajectories])
-        noise = torch.as_tensor(self._noise(max(t.T for t in trajectories)), device=device)
-        targets_t = torch.as_tensor(targets, device=device)
-        steps_t = torch.as_tensor(steps, device=device)
+        # (T, M, d_s, K): samples innermost, so the sum over coordinates runs on whole rows.
+        noise = np.ascontiguousarray(self._noise(max(t.T for t in trajectories)).swapaxes(2, 3))
 
-        def min_sampled_error(outputs: torch.Tensor, rows: slice) -> torch.Tensor:
-            mean, logvar = gaussian_mean_and_logvar(outputs)  # (M, n, d)
-            std = torch.exp(0.5 * logvar)
-            # (n, M, K, d): member m's k-th sample at each row's own step index.
-            samples = (
-                mean.transpose(0, 1)[:, :, None]
-                + std.transpose(0, 1)[:, :, None] * noise[steps_t[rows]]
-            )
-            errors = ((targets_t[rows][:, None, None] - samples) ** 2).sum(dim=-1)
-            return errors.flatten(start_dim=1).min(dim=1).values
+        def min_sampled_error(outputs: np.ndarray, rows: slice) -> np.ndarray:
+            mean, logvar = gaussian_mean_and_logvar(outputs.transpose(1, 0, 2))  # (n, M, d_s)
+            residual = targets[rows][:, None] - mean
+            # s_{t+1} − ŝ^{(m,k)}_t = residual − σ_m ε^{(m,k)}_t at each row's own step index,
+            # computed in place in one (n, M, d_s, K) buffer.
+            errors = noise[steps[rows]]
+            errors *= np.exp(0.5 * logvar)[..., None]
+            np.subtract(residual[..., None], errors, out=errors)
+            errors *= errors
+            return errors.sum(axis=2).reshape(len(errors), -1).min(axis=1)
 
-        scores = chunked_scores(self.weights_, inputs, self.device, min_sampled_error)
+        scores = chunked_scores(self.weights_, inputs, min_sampled_error)
         return split_scores(scores, trajectories)

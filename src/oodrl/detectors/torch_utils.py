@@ -1,13 +1,13 @@
 """The small torch toolkit of the neural detectors: an ensemble MLP, its training loop, devices.
 
-Imported only inside the neural detectors' `_fit` and `_score_many` (their modules, parameters
-and pickles are torch-free, see `oodrl.detectors.neural`), so no stage imports torch unless it
-fits or scores a neural detector.
+Imported only inside the neural detectors' `_fit` (their modules, parameters, pickles and
+scoring are torch-free, see `oodrl.detectors.neural`), so no stage imports torch unless it fits
+a neural detector.
 
 An ensemble of M members is one module whose weights carry a leading member axis, so all members
-train and predict in one batched matrix product (a single network is M = 1). A fitted detector
-keeps the weights as numpy arrays (`EnsembleWeights`), and scoring rebuilds a module from them
-without touching the detector.
+train in one batched matrix product (a single network is M = 1). A fitted detector keeps the
+weights as numpy arrays (`EnsembleWeights`), whose `predict` is this module's forward pass in
+numpy: scoring needs no torch.
 
 Reproducibility: weights are initialised and data orders drawn from a `torch.Generator` seeded
 with the detector's seed; nothing reads the global torch RNG. On one machine and device the same
@@ -23,10 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from oodrl.detectors.neural import EnsembleWeights, TrainSettings
-
-#: Rows per forward pass when predicting, to bound memory on long score batches.
-PREDICT_CHUNK = 8192
+from oodrl.detectors.neural import EnsembleWeights, TrainSettings, gaussian_mean_and_logvar
 
 
 def resolve_device(device: str) -> torch.device:
@@ -42,7 +39,10 @@ def seeded_generator(seed: int) -> torch.Generator:
 
 
 class EnsembleMLP(nn.Module):
-    """M independent MLPs (SiLU between layers) evaluated together on inputs of shape (M, B, in)."""
+    """M independent MLPs (SiLU between layers) evaluated together on inputs of shape (M, B, in).
+
+    `EnsembleWeights.predict` is the same forward pass in numpy; keep the two in step.
+    """
 
     def __init__(
         self,
@@ -63,21 +63,6 @@ class EnsembleMLP(nn.Module):
             bias = (torch.rand(n_members, 1, n_out, generator=generator) * 2 - 1) * bound
             self.weights.append(nn.Parameter(weight))
             self.biases.append(nn.Parameter(bias))
-
-    @classmethod
-    def from_weights(cls, weights: EnsembleWeights, device: torch.device) -> EnsembleMLP:
-        """A fresh module holding copies of `weights` on `device`, in eval mode."""
-        n_members, in_dim, _ = weights.weights[0].shape
-        out_dim = weights.weights[-1].shape[2]
-        hidden = [w.shape[2] for w in weights.weights[:-1]]
-        # A private generator for the throwaway initialisation: the global RNG stays untouched.
-        model = cls(n_members, in_dim, out_dim, hidden, torch.Generator())
-        with torch.no_grad():
-            for param, array in zip(
-                [*model.weights, *model.biases], [*weights.weights, *weights.biases], strict=True
-            ):
-                param.copy_(torch.from_numpy(array))
-        return model.to(device).eval()
 
     def numpy_weights(self) -> EnsembleWeights:
         """Copies of the weights as numpy arrays (what a fitted detector stores)."""
@@ -144,49 +129,13 @@ def train_ensemble(
     return model.numpy_weights()
 
 
-def chunked_scores(
-    weights: EnsembleWeights,
-    inputs: np.ndarray,
-    device: str,
-    reduce: Callable[[torch.Tensor, slice], torch.Tensor],
-) -> np.ndarray:
-    """Per-row scores (N,) float64 from every member's outputs, computed chunk by chunk.
-
-    `reduce(outputs, rows)` gets the (M, n, out) float64 outputs of all members on the inputs
-    `inputs[rows]` and returns their (n,) scores; chunking bounds memory on long score batches.
-    """
-    target = resolve_device(device)
-    model = EnsembleMLP.from_weights(weights, target)
-    n_members = weights.weights[0].shape[0]
-    scores = []
-    with torch.inference_mode():
-        for start in range(0, inputs.shape[0], PREDICT_CHUNK):
-            rows = slice(start, start + PREDICT_CHUNK)
-            x = torch.as_tensor(inputs[rows], dtype=torch.float32, device=target)
-            outputs = model(x.expand(n_members, -1, -1)).double()
-            scores.append(reduce(outputs, rows).cpu().numpy())
-    return np.concatenate(scores)
-
-
 def member_mse(output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Mean squared error of each member, summed over members."""
     return ((output - target) ** 2).mean(dim=(1, 2)).sum()
 
 
-#: Bounds of a Gaussian head's log-variance (standardised units), softly enforced as in PETS.
-MAX_LOGVAR = 2.0
-MIN_LOGVAR = -10.0
-
-
-def gaussian_mean_and_logvar(outputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Split (…, 2d) Gaussian-head outputs into the mean and the softly bounded log-variance."""
-    mean, raw = outputs.chunk(2, dim=-1)
-    logvar = MAX_LOGVAR - nn.functional.softplus(MAX_LOGVAR - raw)
-    return mean, MIN_LOGVAR + nn.functional.softplus(logvar - MIN_LOGVAR)
-
-
 def member_gaussian_nll(output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """Gaussian negative log-likelihood (up to a constant) of each member, summed over members."""
-    mean, logvar = gaussian_mean_and_logvar(output)
+    mean, logvar = gaussian_mean_and_logvar(output, nn.functional.softplus)
     nll = 0.5 * ((target - mean) ** 2 * torch.exp(-logvar) + logvar)
     return nll.mean(dim=(1, 2)).sum()

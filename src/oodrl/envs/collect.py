@@ -43,6 +43,7 @@ class _Block:
 
 
 def _rollout_block(adapter, policy: Policy, block: _Block, T: int, labels, policy_seed: int):  # noqa: N803
+    """Roll out one block of streams in lock step, the policy batched across them."""
     n, d = len(block.seeds), adapter.state_dim
     envs = [adapter.make() for _ in range(n)]
     handles = [adapter.handle(env) for env in envs]
@@ -83,6 +84,86 @@ def _rollout_block(adapter, policy: Policy, block: _Block, T: int, labels, polic
     return out
 
 
+@dataclass(frozen=True)
+class Request:
+    """One trajectory set to collect: a stream per seed; `faults[i]` acts on stream i where
+    `labels` (labels None = a clean set)."""
+
+    seeds: tuple[int, ...]
+    labels: np.ndarray | None = None
+    faults: tuple[Fault, ...] | None = None
+    attrs: dict | None = None
+
+    def blocks(self) -> list[_Block]:
+        faults = self.faults if self.faults is not None else (None,) * len(self.seeds)
+        return [
+            _Block(self.seeds[i : i + BLOCK_SIZE], faults[i : i + BLOCK_SIZE])
+            for i in range(0, len(self.seeds), BLOCK_SIZE)
+        ]
+
+
+def collect_many(
+    adapter,
+    policy: Policy,
+    requests: Sequence[Request],
+    T: int,  # noqa: N803
+    *,
+    policy_seed: int = 0,
+    workers: int = 1,
+    progress: Callable[[int], None] | None = None,
+) -> list[TrajectorySet]:
+    """Collect several sets at once: all their blocks share one pool of worker processes."""
+    jobs = []
+    for index, request in enumerate(requests):
+        if request.faults is not None and (
+            request.labels is None or len(request.faults) != len(request.seeds)
+        ):
+            raise ValueError("faults need labels and one fault per seed.")
+        labels = np.zeros(T, bool) if request.labels is None else np.asarray(request.labels, bool)
+        jobs.extend((index, block, labels) for block in request.blocks())
+    parts = _run_blocks(adapter, policy, jobs, T, policy_seed, workers, progress)
+    sets = []
+    for index, request in enumerate(requests):
+        mine = [part for (owner, _, _), part in zip(jobs, parts, strict=True) if owner == index]
+        merged = {key: np.concatenate([p[key] for p in mine]) for key in mine[0]}
+        labels = None
+        if request.labels is not None:
+            labels = np.tile(np.asarray(request.labels, bool), (len(request.seeds), 1))
+        sets.append(
+            TrajectorySet(
+                **merged,
+                seeds=np.array(request.seeds, dtype=np.int64),
+                labels=labels,
+                attrs=dict(request.attrs or {}),
+            )
+        )
+    return sets
+
+
+def _run_blocks(adapter, policy, jobs, T, policy_seed, workers, progress):  # noqa: N803
+    if workers > 1 and len(jobs) > 1:
+        import multiprocessing
+
+        context = multiprocessing.get_context("fork")
+        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=context) as pool:
+            futures = [
+                pool.submit(_rollout_block, adapter, policy, block, T, labels, policy_seed)
+                for _, block, labels in jobs
+            ]
+            parts = []
+            for (_, block, _), future in zip(jobs, futures, strict=True):
+                parts.append(future.result())
+                if progress:
+                    progress(len(block.seeds))
+            return parts
+    parts = []
+    for _, block, labels in jobs:
+        parts.append(_rollout_block(adapter, policy, block, T, labels, policy_seed))
+        if progress:
+            progress(len(block.seeds))
+    return parts
+
+
 def collect(
     adapter,
     policy: Policy,
@@ -97,37 +178,12 @@ def collect(
     progress: Callable[[int], None] | None = None,
 ) -> TrajectorySet:
     """Roll out one deployment stream per seed; `faults[i]` acts on stream i where `labels`."""
-    seeds = [int(s) for s in seeds]
-    if faults is not None and (labels is None or len(faults) != len(seeds)):
-        raise ValueError("faults need labels and one fault per seed.")
-    step_labels = np.zeros(T, bool) if labels is None else np.asarray(labels, bool)
-    stream_faults = list(faults) if faults is not None else [None] * len(seeds)
-    blocks = [
-        _Block(tuple(seeds[i : i + BLOCK_SIZE]), tuple(stream_faults[i : i + BLOCK_SIZE]))
-        for i in range(0, len(seeds), BLOCK_SIZE)
-    ]
-    args = (T, step_labels, policy_seed)
-    if workers > 1 and len(blocks) > 1:
-        import multiprocessing
-
-        context = multiprocessing.get_context("fork")
-        with ProcessPoolExecutor(min(workers, len(blocks)), mp_context=context) as pool:
-            futures = [pool.submit(_rollout_block, adapter, policy, b, *args) for b in blocks]
-            parts = []
-            for block, future in zip(blocks, futures, strict=True):
-                parts.append(future.result())
-                if progress:
-                    progress(len(block.seeds))
-    else:
-        parts = []
-        for block in blocks:
-            parts.append(_rollout_block(adapter, policy, block, *args))
-            if progress:
-                progress(len(block.seeds))
-    merged = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
-    return TrajectorySet(
-        **merged,
-        seeds=np.array(seeds, dtype=np.int64),
-        labels=None if labels is None else np.tile(step_labels, (len(seeds), 1)),
-        attrs=dict(attrs or {}),
+    request = Request(
+        tuple(int(s) for s in seeds),
+        labels,
+        None if faults is None else tuple(faults),
+        attrs,
     )
+    return collect_many(
+        adapter, policy, [request], T, policy_seed=policy_seed, workers=workers, progress=progress
+    )[0]

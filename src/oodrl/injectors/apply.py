@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -12,7 +12,7 @@ from oodrl.core.injector import BaseAnomalyInjector, OnlineInjector, PostHocInje
 from oodrl.core.policy import Policy
 from oodrl.core.spec import AnomalySpec
 from oodrl.core.trajectory import TrajectorySet
-from oodrl.envs.collect import collect
+from oodrl.envs.collect import Request, collect_many
 from oodrl.errors import ContractError
 
 
@@ -73,28 +73,39 @@ def collect_online(
     Stream j's fault draws from `injector_rng(seed, name, j)`; with the same `policy_seed` the
     steps before the onset reproduce the matched clean streams exactly.
     """
-    _check_spec(injector, spec)
+    return collect_online_sets(
+        injector, adapter, policy, seeds, T, [spec], seed, policy_seed, workers
+    )[0]
+
+
+def collect_online_sets(
+    injector: OnlineInjector,
+    adapter,
+    policy: Policy,
+    seeds: Sequence[int],
+    T: int,  # noqa: N803
+    specs: Sequence[AnomalySpec],
+    seed: int,
+    policy_seed: int,
+    workers: int = 1,
+    progress: Callable[[int], None] | None = None,
+) -> list[TrajectorySet]:
+    """`collect_online` for several specs (a severity sweep) sharing one pool of workers."""
     injector.check_adapter(adapter)
-    faults = [
-        injector.fault(spec, injector_rng(seed, injector.injector_name, j))
-        for j in range(len(seeds))
-    ]
-    attrs = {
-        "T": T,
-        "env_id": adapter.env_id,
-        "mode": spec.mode,
-        "onset": spec.onset,
-        "policy_sha256": policy.sha256,
-        "spec": spec.to_dict(),
-    }
-    return collect(
-        adapter,
-        policy,
-        seeds,
-        T,
-        policy_seed=policy_seed,
-        labels=spec.labels(T),
-        faults=faults,
-        workers=workers,
-        attrs=attrs,
-    )
+    requests = []
+    for spec in specs:
+        _check_spec(injector, spec)
+        faults = tuple(
+            injector.fault(spec, injector_rng(seed, injector.injector_name, j))
+            for j in range(len(seeds))
+        )
+        attrs = {
+            "T": T,
+            "env_id": adapter.env_id,
+            "mode": spec.mode,
+            "onset": spec.onset,
+            "policy_sha256": policy.sha256,
+            "spec": spec.to_dict(),
+        }
+        requests.append(Request(tuple(int(s) for s in seeds), spec.labels(T), faults, attrs))
+    return collect_many(adapter, policy, requests, T, policy_seed=policy_seed, workers=workers)

@@ -88,47 +88,50 @@ def collect_eval(params: Params, policy_path: Path, out: Path) -> TrajectorySet:
     return tset
 
 
-def perturbed_set(
-    params: Params, injector_name: str, severity: float, policy_path: Path, eval_path: Path
-) -> TrajectorySet:
-    """The evaluation set with one injector's anomaly at one severity (SPEC §3)."""
-    from oodrl.injectors.apply import collect_online, perturb_posthoc
+def perturbed_sets(
+    params: Params,
+    injector_name: str,
+    severities: list[float],
+    policy_path: Path,
+    eval_path: Path,
+) -> list[TrajectorySet]:
+    """The evaluation set with one injector's anomaly at each severity (SPEC §3).
+
+    Online severities are simulated together so their rollouts share the stage's workers.
+    """
+    from oodrl.injectors.apply import collect_online_sets, perturb_posthoc
 
     injector = params.injector(injector_name)
-    spec = injector.spec(severity, params.env.resolved_onset, params.anomaly.offset)
+    onset, offset = params.env.resolved_onset, params.anomaly.offset
+    specs = [injector.spec(severity, onset, offset) for severity in severities]
     if injector.mode == "posthoc":
         clean = read_trajectories(eval_path, stage="collect_eval")
-        return perturb_posthoc(injector, clean, spec, params.seed)
+        return [perturb_posthoc(injector, clean, spec, params.seed) for spec in specs]
     adapter, policy = _adapter(params), _policy(params, policy_path)
-    tset = collect_online(
-        injector,
-        adapter,
-        policy,
-        eval_seeds(params),
-        params.env.T,
-        spec,
-        seed=params.seed,
-        policy_seed=params.seed,
-        workers=params.executor.resolved_workers,
-    )
-    return dataclasses.replace(tset, attrs={**_base_attrs(params, adapter, policy), **tset.attrs})
+    seeds = eval_seeds(params)
+    label = f"{injector_name} ({len(specs)} severities)"
+    with progress_bar(len(seeds) * len(specs), label, params.executor.progress) as bar:
+        sets = collect_online_sets(
+            injector, adapter, policy, seeds, params.env.T, specs,
+            seed=params.seed, policy_seed=params.seed,
+            workers=params.executor.resolved_workers, progress=bar.update,
+        )  # fmt: skip
+    base = _base_attrs(params, adapter, policy)
+    return [dataclasses.replace(t, attrs={**base, **t.attrs}) for t in sets]
 
 
 def collect_ood(
     params: Params, injector_name: str, policy_path: Path, eval_path: Path, out: Path
 ) -> None:
     severity = params.injector_severity(injector_name)
-    write_trajectories(out, perturbed_set(params, injector_name, severity, policy_path, eval_path))
+    (tset,) = perturbed_sets(params, injector_name, [severity], policy_path, eval_path)
+    write_trajectories(out, tset)
 
 
 def collect_sweep(
     params: Params, injector_name: str, policy_path: Path, eval_path: Path, out: Path
 ) -> None:
     grid = params.anomaly.sweep
-    sets = {}
-    with progress_bar(len(grid), f"sweep {injector_name}", params.executor.progress) as bar:
-        for severity in grid:
-            sets[severity] = perturbed_set(params, injector_name, severity, policy_path, eval_path)
-            bar.update()
-    mode = next(iter(sets.values())).attrs.get("mode")
-    write_sweep(out, sets, {"injector": injector_name, "mode": mode})
+    sets = perturbed_sets(params, injector_name, grid, policy_path, eval_path)
+    write_sweep(out, dict(zip(grid, sets, strict=True)),
+                {"injector": injector_name, "mode": sets[0].attrs.get("mode")})  # fmt: skip
