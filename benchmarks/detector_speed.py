@@ -1,6 +1,6 @@
 """Fit and scoring time of every registered detector at the default benchmark size (one core).
 
-Not collected by pytest. Run:  .venv/bin/python tests/detectors/bench_speed.py [names...]
+Run:  python benchmarks/detector_speed.py [names...]
 (BENCH_DATA=file.pkl: use a pickled list of >= 70 trajectories instead of the synthetic ones.)
 Fit on 24 trajectories × T=500 (d_s=8, 4 actions), calibrate on 6, score 550,000 steps in
 score_many calls of 20 trajectories (10,000 steps) each, as the pipeline scores one store.

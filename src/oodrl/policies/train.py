@@ -1,0 +1,236 @@
+"""Train the benchmark's policy: double DQN with NoisyNet exploration on the flat state.
+
+One readable file in the style of CleanRL's ``dqn.py``. Exploration comes only from the noisy layers
+(no ε-greedy). The online network picks the next action and the target network values it (double
+Q-learning); each side draws its own noise sample per update. A periodic greedy evaluation on
+*tuning* seeds keeps the best weights and stops training early once they are good enough; the
+kept weights are then evaluated on *held-out* seeds (disjoint from training and tuning seeds) for
+the report.
+
+Seeds: training episodes are the environment's RNG stream after ``reset(seed=seed)``; tuning
+evaluations use seeds ``seed + 100_000 + i``; the final evaluation uses ``final_eval_seed + i``.
+On one machine with one torch thread, a given config gives byte-identical checkpoint files.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import json
+import os
+import platform
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import torch
+from torch import nn
+
+import oodrl
+from oodrl.policies.load import (
+    CHECKPOINT_FORMAT,
+    CHECKPOINT_VERSION,
+    QNetworkPolicy,
+    evaluate_policy,
+)
+from oodrl.policies.networks import NoisyQNetwork
+from oodrl.policies.settings import TrainConfig
+
+TUNING_SEED_OFFSET = 100_000
+
+
+class ReplayBuffer:
+    """Fixed-size ring buffer of transitions in preallocated numpy arrays."""
+
+    def __init__(self, size: int, state_dim: int) -> None:
+        self.obs = np.zeros((size, state_dim), dtype=np.float32)
+        self.next_obs = np.zeros((size, state_dim), dtype=np.float32)
+        self.actions = np.zeros(size, dtype=np.int64)
+        self.rewards = np.zeros(size, dtype=np.float32)
+        self.terminated = np.zeros(size, dtype=np.float32)
+        self.size = size
+        self.count = 0
+
+    def add(self, obs, action: int, reward: float, next_obs, terminated: bool) -> None:
+        i = self.count % self.size
+        self.obs[i], self.actions[i], self.rewards[i] = obs, action, reward
+        self.next_obs[i], self.terminated[i] = next_obs, terminated
+        self.count += 1
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> tuple[torch.Tensor, ...]:
+        idx = rng.integers(0, min(self.count, self.size), size=batch_size)
+        return tuple(
+            torch.from_numpy(a[idx])
+            for a in (self.obs, self.actions, self.rewards, self.next_obs, self.terminated)
+        )
+
+
+def greedy_returns(
+    network: NoisyQNetwork, config: TrainConfig, episodes: int, seed: int
+) -> np.ndarray:
+    """Returns of the noise-free network on episodes seeded seed..seed+episodes-1."""
+    policy = QNetworkPolicy(copy.deepcopy(network), kind="noisy_dqn", mode="greedy")
+    return evaluate_policy(policy, episodes, seed, env_id=config.env_id)
+
+
+def train(
+    config: TrainConfig, policy_path: Path, report_path: Path, progress: bool = False
+) -> dict[str, Any]:
+    """Train; save the best evaluated weights and their report (also returned)."""
+    torch.set_num_threads(1)
+    torch.manual_seed(config.seed)
+    np_rng = np.random.default_rng(config.seed)
+    noise_gen = torch.Generator().manual_seed(config.seed + 1)
+    started = time.perf_counter()
+
+    env = gym.make(config.env_id)
+    state_dim = int(np.prod(env.observation_space.shape))
+    n_actions = int(env.action_space.n)
+    q_net = NoisyQNetwork(state_dim, n_actions, config.hidden_sizes, config.sigma0)
+    target_net = copy.deepcopy(q_net)
+    optimizer = torch.optim.Adam(q_net.parameters(), lr=config.lr, eps=config.adam_eps)
+    buffer = ReplayBuffer(config.buffer_size, state_dim)
+
+    best_state = copy.deepcopy(q_net.state_dict())
+    best_return, best_step = -np.inf, 0
+    curve: list[tuple[int, float]] = []
+    episode_return, episode_returns = 0.0, []
+    obs, _ = env.reset(seed=config.seed)
+    step = 0
+    for step in range(1, config.total_steps + 1):
+        with torch.no_grad():
+            q = q_net(torch.from_numpy(obs).unsqueeze(0), q_net.sample_noise(noise_gen))
+        action = int(q.argmax())
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        buffer.add(obs, action, float(reward), next_obs, terminated)
+        episode_return += float(reward)
+        obs = next_obs
+        if terminated or truncated:
+            episode_returns.append(episode_return)
+            episode_return = 0.0
+            obs, _ = env.reset()
+
+        if step > config.learning_starts and step % config.train_freq == 0:
+            frac = min(1.0, step / config.total_steps)
+            for group in optimizer.param_groups:
+                group["lr"] = config.lr + frac * (config.lr_final - config.lr)
+            b_obs, b_act, b_rew, b_next, b_term = buffer.sample(config.batch_size, np_rng)
+            online_noise = q_net.sample_noise(noise_gen)
+            with torch.no_grad():
+                next_action = q_net(b_next, online_noise).argmax(dim=1, keepdim=True)
+                next_q = target_net(b_next, target_net.sample_noise(noise_gen)).gather(
+                    1, next_action
+                )
+                target = b_rew + config.gamma * (1.0 - b_term) * next_q.squeeze(1)
+            q_taken = q_net(b_obs, online_noise).gather(1, b_act.unsqueeze(1)).squeeze(1)
+            loss = nn.functional.smooth_l1_loss(q_taken, target)
+            optimizer.zero_grad()
+            loss.backward()
+            nn.utils.clip_grad_norm_(q_net.parameters(), config.max_grad_norm)
+            optimizer.step()
+
+        if step % config.target_sync == 0:
+            target_net.load_state_dict(q_net.state_dict())
+
+        if step > config.learning_starts and step % config.eval_every == 0:
+            tuning_seed = config.seed + TUNING_SEED_OFFSET
+            mean = float(greedy_returns(q_net, config, config.eval_episodes, tuning_seed).mean())
+            curve.append((step, mean))
+            if mean > best_return:
+                best_return, best_step = mean, step
+                best_state = copy.deepcopy(q_net.state_dict())
+            if progress:
+                recent = np.mean(episode_returns[-20:]) if episode_returns else float("nan")
+                print(
+                    f"step {step:>8d}  eval {mean:8.1f}  best {best_return:8.1f}@{best_step}  "
+                    f"train(20) {recent:8.1f}  {time.perf_counter() - started:6.0f}s",
+                    flush=True,
+                )
+            if mean >= config.early_stop_return:
+                break
+    env.close()
+
+    q_net.load_state_dict(best_state)
+    final = greedy_returns(q_net, config, config.final_eval_episodes, config.final_eval_seed)
+    wall_time = time.perf_counter() - started
+    architecture = {
+        "kind": "noisy_dqn",
+        "state_dim": state_dim,
+        "n_actions": n_actions,
+        "hidden_sizes": list(config.hidden_sizes),
+        "sigma0": config.sigma0,
+    }
+    checkpoint = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "architecture": architecture,
+        "env_id": config.env_id,
+        "train_config": config.as_dict(),
+        "steps_trained": best_step,
+        "versions": _versions(),
+        "state_dict": {k: v.detach().clone().contiguous() for k, v in best_state.items()},
+    }
+    _atomic_write(policy_path, _torch_bytes(checkpoint))
+    report = {
+        "env_id": config.env_id,
+        "architecture": architecture,
+        "train_config": config.as_dict(),
+        "evaluation": {
+            "mode": "greedy",
+            "episodes": config.final_eval_episodes,
+            "seeds": [config.final_eval_seed + i for i in range(config.final_eval_episodes)],
+            "returns": [float(r) for r in final],
+            "mean": float(final.mean()),
+            "std": float(final.std()),
+            "min": float(final.min()),
+            "max": float(final.max()),
+        },
+        "tuning_evaluation": {
+            "episodes": config.eval_episodes,
+            "seeds_start": config.seed + TUNING_SEED_OFFSET,
+            "best_mean": float(best_return),
+            "best_step": best_step,
+        },
+        "steps_trained": best_step,
+        "steps_run": step,
+        "learning_curve": [[s, m] for s, m in curve],
+        "wall_time_s": round(wall_time, 1),
+        "versions": _versions(),
+        "platform": platform.platform(),
+    }
+    _atomic_write(report_path, (json.dumps(report, indent=2, sort_keys=True) + "\n").encode())
+    return report
+
+
+def _versions() -> dict[str, str]:
+    return {
+        "oodrl": str(oodrl.__version__),
+        "torch": str(torch.__version__),
+        "gymnasium": str(gym.__version__),
+        "numpy": str(np.__version__),
+    }
+
+
+def _torch_bytes(obj: Any) -> bytes:
+    # Saving to a buffer keeps the zip's internal folder name fixed ("archive"), whatever the path.
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    return buffer.getvalue()
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` via a temporary file in the same folder (never half-written)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        os.chmod(tmp, 0o644)  # mkstemp makes it private; the outputs are shared artefacts
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,78 @@
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from oodrl.policies.load import load_policy
+from oodrl.policies.train import TrainConfig, train
+
+TINY = TrainConfig(
+    hidden_sizes=(32, 32),
+    total_steps=600,
+    learning_starts=200,
+    train_freq=2,
+    target_sync=100,
+    eval_every=200,
+    eval_episodes=2,
+    early_stop_return=1e9,
+    final_eval_episodes=2,
+    seed=3,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, dict]:
+    folder = tmp_path_factory.mktemp("train")
+    report = train(TINY, folder / "policy.pt", folder / "policy.json", progress=False)
+    return folder / "policy.pt", folder / "policy.json", report
+
+
+@pytest.mark.slow
+def test_smoke_training_writes_a_loadable_checkpoint_and_report(tiny_run):
+    policy_path, report_path, report = tiny_run
+    checkpoint = torch.load(policy_path, weights_only=True)
+    assert checkpoint["format"] == "oodrl-policy"
+    assert checkpoint["version"] == 1
+    assert checkpoint["architecture"] == {
+        "kind": "noisy_dqn",
+        "state_dim": 8,
+        "n_actions": 4,
+        "hidden_sizes": [32, 32],
+        "sigma0": 0.5,
+    }
+    assert not list(policy_path.parent.glob("*.tmp"))
+
+    text = report_path.read_text()
+    on_disk = json.loads(text)
+    assert text == json.dumps(on_disk, indent=2, sort_keys=True) + "\n"
+    evaluation = on_disk["evaluation"]
+    assert evaluation["seeds"] == [1_000_000, 1_000_001]
+    assert evaluation["mean"] == pytest.approx(np.mean(evaluation["returns"]))
+    assert evaluation["min"] <= evaluation["mean"] <= evaluation["max"]
+    assert [s for s, _ in on_disk["learning_curve"]] == [400, 600]
+    assert on_disk["steps_trained"] in (400, 600)
+    assert set(on_disk["versions"]) == {"oodrl", "torch", "gymnasium", "numpy"}
+    assert on_disk["train_config"] == TINY.as_dict()
+    assert report["evaluation"] == evaluation
+
+    policy = load_policy(policy_path)
+    assert (policy.state_dim, policy.n_actions, policy.kind) == (8, 4, "noisy_dqn")
+
+
+@pytest.mark.slow
+def test_training_is_byte_reproducible(tiny_run, tmp_path: Path):
+    policy_path, _, report = tiny_run
+    again = train(TINY, tmp_path / "policy.pt", tmp_path / "policy.json", progress=False)
+    assert (tmp_path / "policy.pt").read_bytes() == policy_path.read_bytes()
+    assert again["evaluation"] == report["evaluation"]
+    assert again["learning_curve"] == report["learning_curve"]
+
+
+def test_config_is_frozen_and_normalises_hidden_sizes():
+    config = TrainConfig(hidden_sizes=[64, 64])
+    assert config.hidden_sizes == (64, 64)
+    assert config.as_dict()["hidden_sizes"] == [64, 64]
+    with pytest.raises(AttributeError):
+        config.lr = 1.0  # type: ignore[misc]
