@@ -93,7 +93,6 @@ class BaseDetector(Component):
         """Scores for many trajectories; override to batch (e.g. one network pass)."""
         return [self._score(t) for t in trajectories]
 
-
     # -- the public contract ---------------------------------------------------------------
     @property
     def detector_name(self) -> str:
