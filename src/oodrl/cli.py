@@ -7,6 +7,7 @@ non-zero exit (2 for bad params or usage, 1 otherwise), never a traceback.
 from __future__ import annotations
 
 import functools
+import os
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -14,6 +15,12 @@ from typing import Annotated
 import typer
 
 from oodrl.errors import ConfigError, OodrlError
+
+# Stages parallelise explicitly (executor.workers processes); library thread pools would
+# oversubscribe the cores (OpenMP threads spin-wait: 10x slowdowns seen on 2 cores) and let
+# float results depend on the machine's core count. Set before numpy or torch is imported.
+for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ.setdefault(_variable, "1")
 
 app = typer.Typer(
     add_completion=False,
