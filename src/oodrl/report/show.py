@@ -8,6 +8,7 @@ from typing import Any
 
 import yaml
 
+from oodrl import yamlio
 from oodrl.errors import StoreError
 from oodrl.report.tables import render_tables, sweep_tables
 
@@ -23,7 +24,7 @@ def load_report(path: str | Path) -> tuple[str, dict[str, Any]]:
             "(the metrics stage writes them to reports/; run `dvc repro` first)."
         )
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+        data = yamlio.load(path.read_text(encoding="utf-8"))
     except (yaml.YAMLError, UnicodeDecodeError) as error:
         raise StoreError(f"'{path}' is not a YAML report file: {error}") from None
     if isinstance(data, Mapping) and isinstance(data.get("records"), list):

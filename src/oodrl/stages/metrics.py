@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from oodrl import yamlio
 from oodrl.config import Params
 from oodrl.core.spec import make_labels
 from oodrl.stages.common import atomic_write_text, progress_bar
@@ -58,54 +59,76 @@ def _null_metrics(params: Params, clean: np.ndarray, threshold: float, settings,
     return summarise(per_episode, settings)
 
 
+def _detector_results(params: Params, scores_dir: Path, detector: str):
+    """One detector's anomaly records, its sweep summaries, and the injectors' modes."""
+    settings = _settings(params)
+    eval_path = score_store(scores_dir, detector, "eval")
+    clean_groups, clean_attrs = read_scores(eval_path, stage=f"score_clean@{detector}")
+    clean = clean_groups[CLEAN_GROUP]["scores"]
+    threshold = float(clean_attrs["threshold"])
+    records, sweep, modes = [], {}, {}
+    for injector in params.benchmark.injectors:
+        path = score_store(scores_dir, detector, injector)
+        groups, attrs = read_scores(path, stage=f"score@{detector}-{injector}")
+        spec, modes[injector] = attrs["spec"], attrs["mode"]
+        headline = _summary(groups[HEADLINE_GROUP], clean, threshold, spec, settings, detector)
+        records.append({
+            "kind": "anomaly", "detector": detector, "anomaly": injector,
+            "mode": attrs["mode"], "severity": spec["severity"], "metrics": headline,
+        })  # fmt: skip
+        for severity in attrs["severities"]:
+            sweep[(injector, float(severity))] = _summary(
+                groups[severity_key(severity)], clean, threshold,
+                {**spec, "severity": severity}, settings, detector,
+            )  # fmt: skip
+    null = _null_metrics(params, clean, threshold, settings, detector)
+    records.extend(
+        {"kind": "null", "detector": detector, "anomaly": "null", "mode": mode,
+         "severity": None, "metrics": null}
+        for mode in sorted(set(modes.values()))
+    )  # fmt: skip
+    return records, sweep, modes
+
+
 def compute_results(params: Params, scores_dir: Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """Every (detector, anomaly) headline record, the null baselines, and the sweep.
 
-    The clean evaluation set is the matched counterpart of both execution modes (online runs
-    re-use its seeds), so each mode's null baseline is computed on the same clean scores.
+    Detectors are summarised in parallel (executor.workers); each summary is seeded alone,
+    so the results do not depend on the worker count. The clean evaluation set is the
+    matched counterpart of both execution modes (online runs re-use its seeds), so each
+    mode's null baseline is computed on the same clean scores.
     """
-    settings = _settings(params)
-    detectors, injectors = params.benchmark.detectors, params.benchmark.injectors
-    records: list[dict[str, Any]] = []
-    sweep: dict[str, dict[float, dict[str, Any]]] = {name: {} for name in injectors}
-    modes: dict[str, str] = {}
-    with progress_bar(len(detectors) * len(injectors), "metrics", params.executor.progress) as bar:
-        for detector in detectors:
-            eval_path = score_store(scores_dir, detector, "eval")
-            clean_groups, clean_attrs = read_scores(eval_path, stage=f"score_clean@{detector}")
-            clean = clean_groups[CLEAN_GROUP]["scores"]
-            threshold = float(clean_attrs["threshold"])
-            for injector in injectors:
-                path = score_store(scores_dir, detector, injector)
-                groups, attrs = read_scores(path, stage=f"score@{detector}-{injector}")
-                spec, modes[injector] = attrs["spec"], attrs["mode"]
-                headline = _summary(
-                    groups[HEADLINE_GROUP], clean, threshold, spec, settings, detector
-                )
-                records.append({
-                    "kind": "anomaly", "detector": detector, "anomaly": injector,
-                    "mode": attrs["mode"], "severity": spec["severity"], "metrics": headline,
-                })  # fmt: skip
-                for severity in attrs["severities"]:
-                    group = groups[severity_key(severity)]
-                    sweep[injector].setdefault(float(severity), {})[detector] = _summary(
-                        group, clean, threshold, {**spec, "severity": severity}, settings, detector
-                    )
+    detectors = params.benchmark.detectors
+    workers = min(params.executor.resolved_workers, len(detectors))
+    with progress_bar(len(detectors), "metrics", params.executor.progress) as bar:
+        if workers > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            context = multiprocessing.get_context("fork")
+            with ProcessPoolExecutor(workers, mp_context=context) as pool:
+                futures = [pool.submit(_detector_results, params, scores_dir, d) for d in detectors]
+                parts = []
+                for future in futures:
+                    parts.append(future.result())
+                    bar.update()
+        else:
+            parts = []
+            for detector in detectors:
+                parts.append(_detector_results(params, scores_dir, detector))
                 bar.update()
-            null = _null_metrics(params, clean, threshold, settings, detector)
-            records.extend(
-                {"kind": "null", "detector": detector, "anomaly": "null", "mode": mode,
-                 "severity": None, "metrics": null}
-                for mode in sorted(set(modes.values()))
-            )  # fmt: skip
+    records: list[dict[str, Any]] = []
+    sweep: dict[str, dict[float, dict[str, Any]]] = {i: {} for i in params.benchmark.injectors}
+    modes: dict[str, str] = {}
+    for detector, (detector_records, detector_sweep, detector_modes) in zip(
+        detectors, parts, strict=True
+    ):
+        records.extend(detector_records)
+        modes.update(detector_modes)
+        for (injector, severity), summary in detector_sweep.items():
+            sweep[injector].setdefault(severity, {})[detector] = summary
     records.sort(key=lambda r: (r["kind"], r["detector"], r["anomaly"], r["mode"]))
     return {"records": records}, {"modes": modes, "sweep": sweep}
-
-
-def _yaml(data: Any) -> str:
-    import yaml
-
-    return yaml.safe_dump(data, sort_keys=True, default_flow_style=False, width=100)
 
 
 def run_metrics(
@@ -119,8 +142,8 @@ def run_metrics(
     from oodrl.report.tables import metrics_json, render_tables
 
     results, sweep = compute_results(params, scores_dir)
-    atomic_write_text(results_path, _yaml(results))
-    atomic_write_text(sweep_path, _yaml(sweep))
+    atomic_write_text(results_path, yamlio.dump(results))
+    atomic_write_text(sweep_path, yamlio.dump(sweep))
     atomic_write_text(
         metrics_path, json.dumps(metrics_json(results, sweep), indent=2, sort_keys=True) + "\n"
     )

@@ -9,6 +9,7 @@ import subprocess
 from pathlib import Path
 from typing import Any
 
+from oodrl import yamlio
 from oodrl.config import Params
 from oodrl.stages.common import TIMINGS_DIR, atomic_write_text, library_versions
 from oodrl.stages.metrics import score_store
@@ -17,13 +18,11 @@ from oodrl.store import read_scores
 
 
 def _load_yaml(path: Path) -> Any:
-    import yaml
-
     from oodrl.errors import StoreError
 
     if not Path(path).is_file():
         raise StoreError(f"{path}: missing; re-run `dvc repro -f metrics`.")
-    return yaml.safe_load(Path(path).read_text())
+    return yamlio.load(Path(path).read_text())
 
 
 def score_traces(params: Params, results: dict, scores_dir: Path) -> list[dict[str, Any]]:
@@ -100,8 +99,6 @@ def run_render(
     headline_path: Path,
     meta_path: Path,
 ) -> None:
-    import yaml
-
     from oodrl.report.plots import (
         plot_heatmap,
         plot_score_traces,
@@ -118,4 +115,4 @@ def run_render(
     write_dvc_plot_data(results, sweep, plots_dir)
     atomic_write_text(headline_path, headline_table(results))
     meta = run_meta(params, policy_path)
-    atomic_write_text(meta_path, yaml.safe_dump(meta, sort_keys=True, width=100))
+    atomic_write_text(meta_path, yamlio.dump(meta))
