@@ -134,9 +134,6 @@ class LyapunovDivergence(BaseDetector):
         return episode_embedding(trajectories, self.standardizer_, self.embedding_dim, self.lag)
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
-        # Imported here: scipy.spatial costs every stage that only validates params ~0.3 s.
-        from scipy.spatial import cKDTree
-
         self.standardizer_ = Standardizer.fit(
             np.concatenate([t.states for t in trajectories]).astype(np.float64)
         )
@@ -150,12 +147,17 @@ class LyapunovDivergence(BaseDetector):
         anchors = candidates[seeded_subsample(len(candidates), self.max_reference, self.seed)]
         self.vectors_ = embedding.vectors
         self.anchors_ = anchors
-        self.tree_ = cKDTree(embedding.vectors[anchors])
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        # Imported here: scipy.spatial costs every stage that only validates params ~0.3 s.
+        # The tree is rebuilt per call (milliseconds for <= max_reference points) rather than
+        # fitted state: a pickled cKDTree is not byte-reproducible.
+        from scipy.spatial import cKDTree
+
         embedding = self._embed(trajectories)
         query = embedding.steps
-        initial, nearest = self.tree_.query(embedding.vectors[query])
+        tree = cKDTree(self.vectors_[self.anchors_])
+        initial, nearest = tree.query(embedding.vectors[query])
         neighbour = self.anchors_[nearest]
         horizon = np.minimum(embedding.steps_left[query], self.horizon)
         total = np.zeros(len(query))
