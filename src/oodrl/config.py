@@ -62,7 +62,7 @@ class MetricsConfig(_Section):
     ci: float = Field(0.95, gt=0, lt=1)
     tpr_target: float = Field(0.95, gt=0, le=1)
     temporal_buffer: int = Field(10, ge=0)
-    traces_per_anomaly: int = Field(2, ge=0)
+    traces_per_anomaly: int = Field(1, ge=0)
 
 
 class ExecutorConfig(_Section):
