@@ -201,6 +201,16 @@ def test_sb3_models_load_and_act_deterministically(tmp_path: Path, algorithm: st
     with pytest.raises(PolicyError, match="noisy"):
         load_policy(tmp_path / "model.zip", mode="noisy")
 
+    # It works as the benchmark's policy: the collector rolls it out, reproducibly.
+    from oodrl.envs.collect import collect
+    from oodrl.envs.lunar_lander import LunarLanderAdapter
+
+    first = collect(LunarLanderAdapter(), policy, [3, 4], 40)
+    again = collect(LunarLanderAdapter(), load_policy(tmp_path / "model.zip"), [3, 4], 40)
+    assert first.states.shape == (2, 40, 8)
+    np.testing.assert_array_equal(first.actions, again.actions)
+    np.testing.assert_array_equal(first.states, again.states)
+
 
 # --- bad files -----------------------------------------------------------------------------------
 
