@@ -1,57 +1,77 @@
-"""Fit and scoring time of every registered detector at the default benchmark size (one core).
+"""Fit time, scoring time per 1,000 steps and pickle size of every detector, one core.
 
-Run:  python benchmarks/detector_speed.py [names...]
-(BENCH_DATA=file.pkl: use a pickled list of >= 70 trajectories instead of the synthetic ones.)
-Fit on 24 trajectories × T=500 (d_s=8, 4 actions), calibrate on 6, score 550,000 steps in
-score_many calls of 20 trajectories (10,000 steps) each, as the pipeline scores one store.
+    python benchmarks/detector_speed.py [--data data] [names...]
+
+With --data (a directory the pipeline filled: id.zarr, eval.zarr, ood/, sweep/): fit on the
+ID fit split, calibrate on its held-out part, and score every clean, headline and sweep
+trajectory, one store per `score_many` call as the score stages do. Without it: synthetic
+linear-system trajectories of the default size (24 fit, 6 calibration, 550,000 steps scored).
+Detector parameters are the defaults of params.yaml.
 """
 
 from __future__ import annotations
 
+import argparse
 import os
 import pickle
-import sys
 import time
+from pathlib import Path
 
-import torch
-from threadpoolctl import threadpool_limits
-
-from oodrl.detectors import DETECTORS
-from oodrl.testing import linear_system_trajectories
-
-torch.set_num_threads(1)
-threadpool_limits(1)
-
-SHAPE = dict(T=500, state_dim=8, n_actions=4, episode_length=200)
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # before numpy/torch, as in every oodrl stage
 
 
-def main(names: list[str]) -> None:
-    source = os.environ.get("BENCH_DATA")  # a pickled list of >= 70 Trajectory objects
-    if source:
-        with open(source, "rb") as f:
-            data = pickle.load(f)
-    else:
-        data = linear_system_trajectories(70, seed=0, **SHAPE)
-    fit, calibration, pool = data[:24], data[24:30], data[30:]
+def pipeline_sets(data: Path):
+    from oodrl.store import read_sweep, read_trajectories
+
+    id_set = read_trajectories(data / "id.zarr")
+    split = id_set.attrs["split"]
+    stores = [read_trajectories(data / "eval.zarr")]
+    stores += [read_trajectories(p) for p in sorted((data / "ood").glob("*.zarr"))]
+    for path in sorted((data / "sweep").glob("*.zarr")):
+        stores += list(read_sweep(path).values())
+    fit = id_set.subset(split["fit"]).trajectories()
+    calibration = id_set.subset(split["calibration"]).trajectories()
+    return fit, calibration, [s.trajectories() for s in stores]
+
+
+def synthetic_sets():
+    from oodrl.testing import linear_system_trajectories
+
+    data = linear_system_trajectories(70, seed=0, T=500, state_dim=8, n_actions=4,
+                                      episode_length=200)  # fmt: skip
+    pool = data[30:]
     scored = [pool[i % len(pool)] for i in range(1100)]
-    for name in names or DETECTORS.names():
-        cls = DETECTORS.get(name)
-        detector = cls(device="cpu") if cls.uses_torch else cls()
+    return data[:24], data[24:30], [scored[i : i + 20] for i in range(0, len(scored), 20)]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, help="the pipeline's data directory")
+    parser.add_argument("--params", type=Path, default=Path("params.yaml"))
+    parser.add_argument("names", nargs="*")
+    args = parser.parse_args()
+    from oodrl.config import load_params
+
+    params = load_params(args.params)
+    fit, calibration, batches = pipeline_sets(args.data) if args.data else synthetic_sets()
+    steps = sum(t.T for batch in batches for t in batch)
+    print(f"fit {sum(t.T for t in fit)} steps, score {steps} steps in {len(batches)} calls")
+    for name in args.names or params.benchmark.detectors:
+        detector = params.detector(name)
         start = time.perf_counter()
-        detector.fit(fit)
+        detector.fit(fit).calibrate(calibration)
         fit_s = time.perf_counter() - start
-        detector.calibrate(calibration)
         start = time.perf_counter()
-        for i in range(0, len(scored), 20):
-            detector.score_many(scored[i : i + 20])
+        for batch in batches:
+            detector.score_many(batch)
         score_s = time.perf_counter() - start
-        steps = sum(t.T for t in scored)
+        size = len(pickle.dumps(detector))
         print(
-            f"{name:24s} fit {fit_s:6.2f} s   score {score_s:6.2f} s / {steps} steps "
-            f"= {1000 * score_s / steps * 1000:6.2f} ms per 1k steps",
+            f"{name:22s} fit+calibrate {fit_s:6.2f} s   score {1e6 * score_s / steps:6.2f} "
+            f"ms per 1k steps ({score_s:5.1f} s)   pickle {size / 1024:7.1f} KiB",
             flush=True,
         )
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    main()
