@@ -19,18 +19,14 @@ import numpy as np
 
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
-    ActionEncoding,
-    Standardizer,
-    increments,
     split_scores,
     stacked,
-    trajectory_features,
 )
-from oodrl.detectors.neural import TorchDetector, chunked_scores
+from oodrl.detectors.neural import TransitionEnsemble, chunked_scores
 from oodrl.validation import Interval
 
 
-class EnsembleDisagreement(TorchDetector):
+class EnsembleDisagreement(TransitionEnsemble):
     """Mean squared deviation of M bootstrapped transition predictors from their mean.
 
     Parameters
@@ -74,36 +70,8 @@ class EnsembleDisagreement(TorchDetector):
         self.lr = lr
         self.device = device
 
-    def _inputs(self, trajectory: Trajectory) -> np.ndarray:
-        return trajectory_features(trajectory, "state_action", self.action_encoding_)
-
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
-        from oodrl.detectors.torch_utils import (
-            EnsembleMLP,
-            member_indices,
-            member_mse,
-            seeded_generator,
-            train_ensemble,
-        )
-
-        self.action_encoding_ = ActionEncoding.fit(trajectories)
-        inputs = stacked(trajectories, self._inputs)
-        deltas = stacked(trajectories, increments)
-        self.input_standardizer_ = Standardizer.fit(inputs)
-        targets = Standardizer.fit(deltas).transform(deltas)
-        generator = seeded_generator(self.seed)
-        model = EnsembleMLP(
-            self.n_members, inputs.shape[1], targets.shape[1], self.hidden_sizes, generator
-        )
-        self.weights_ = train_ensemble(
-            model,
-            self.input_standardizer_.transform(inputs),
-            targets,
-            member_mse,
-            self._train_settings(),
-            member_indices(self.n_members, len(inputs), True, generator),
-            generator,
-        )
+        self._fit_ensemble(trajectories, "mse", outputs_per_coordinate=1, bootstrap=True)
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
         inputs = self.input_standardizer_.transform(stacked(trajectories, self._inputs))

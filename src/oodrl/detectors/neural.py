@@ -16,6 +16,14 @@ from typing import ClassVar, TypeVar
 import numpy as np
 
 from oodrl.core.detector import BaseDetector
+from oodrl.core.trajectory import Trajectory
+from oodrl.detectors.features import (
+    ActionEncoding,
+    Standardizer,
+    increments,
+    stacked,
+    trajectory_features,
+)
 from oodrl.validation import Interval, Options
 from oodrl.validation import Sequence as SequenceOf
 
@@ -142,3 +150,43 @@ class TorchDetector(BaseDetector):
 
     def _train_settings(self) -> TrainSettings:
         return TrainSettings(self.epochs, self.batch_size, self.lr, self.device)
+
+
+class TransitionEnsemble(TorchDetector):
+    """An ensemble of M networks from the standardised (s_t, one-hot a_t) to the standardised
+    increment s_{t+1} − s_t: the dynamics model `pedm` and `ensemble_disagreement` share."""
+
+    n_members: int
+
+    def _inputs(self, trajectory: Trajectory) -> np.ndarray:
+        return trajectory_features(trajectory, "state_action", self.action_encoding_)
+
+    def _fit_ensemble(
+        self, trajectories: Sequence[Trajectory], loss: str, outputs_per_coordinate: int,
+        bootstrap: bool,
+    ) -> Standardizer:  # fmt: skip
+        """Train the members with `loss` ("mse" or "gaussian_nll"), each on a bootstrap
+        resample or on all transitions; returns the increments' standardizer."""
+        from oodrl.detectors import torch_utils
+
+        loss_fn = {"mse": torch_utils.member_mse, "gaussian_nll": torch_utils.member_gaussian_nll}
+        self.action_encoding_ = ActionEncoding.fit(trajectories)
+        inputs = stacked(trajectories, self._inputs)
+        deltas = stacked(trajectories, increments)
+        self.input_standardizer_ = Standardizer.fit(inputs)
+        target_standardizer = Standardizer.fit(deltas)
+        generator = torch_utils.seeded_generator(self.seed)
+        model = torch_utils.EnsembleMLP(
+            self.n_members, inputs.shape[1], outputs_per_coordinate * deltas.shape[1],
+            self.hidden_sizes, generator,
+        )  # fmt: skip
+        self.weights_ = torch_utils.train_ensemble(
+            model,
+            self.input_standardizer_.transform(inputs),
+            target_standardizer.transform(deltas),
+            loss_fn[loss],
+            self._train_settings(),
+            torch_utils.member_indices(self.n_members, len(inputs), bootstrap, generator),
+            generator,
+        )
+        return target_standardizer

@@ -27,18 +27,15 @@ import numpy as np
 
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
-    ActionEncoding,
-    Standardizer,
     increments,
     split_scores,
     stacked,
-    trajectory_features,
 )
-from oodrl.detectors.neural import TorchDetector, chunked_scores, gaussian_mean_and_logvar
+from oodrl.detectors.neural import TransitionEnsemble, chunked_scores, gaussian_mean_and_logvar
 from oodrl.validation import Interval
 
 
-class Pedm(TorchDetector):
+class Pedm(TransitionEnsemble):
     """Minimum sampled transition error of a probabilistic dynamics ensemble.
 
     Parameters
@@ -91,40 +88,10 @@ class Pedm(TorchDetector):
         self.lr = lr
         self.device = device
 
-    def _inputs(self, trajectory: Trajectory) -> np.ndarray:
-        return trajectory_features(trajectory, "state_action", self.action_encoding_)
-
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
-        from oodrl.detectors.torch_utils import (
-            EnsembleMLP,
-            member_gaussian_nll,
-            member_indices,
-            seeded_generator,
-            train_ensemble,
-        )
-
-        self.action_encoding_ = ActionEncoding.fit(trajectories)
-        inputs = stacked(trajectories, self._inputs)
-        deltas = stacked(trajectories, increments)
-        self.input_standardizer_ = Standardizer.fit(inputs)
-        self.target_standardizer_ = Standardizer.fit(deltas)
-        generator = seeded_generator(self.seed)
-        model = EnsembleMLP(
-            self.n_members,
-            inputs.shape[1],
-            2 * deltas.shape[1],
-            self.hidden_sizes,
-            generator,
-        )
-        indices = member_indices(self.n_members, len(inputs), False, generator)
-        self.weights_ = train_ensemble(
-            model,
-            self.input_standardizer_.transform(inputs),
-            self.target_standardizer_.transform(deltas),
-            member_gaussian_nll,
-            self._train_settings(),
-            indices,
-            generator,
+        # Two outputs per coordinate: the Gaussian mean and log-variance of each increment.
+        self.target_standardizer_ = self._fit_ensemble(
+            trajectories, "gaussian_nll", outputs_per_coordinate=2, bootstrap=False
         )
 
     def _noise(self, horizon: int) -> np.ndarray:
