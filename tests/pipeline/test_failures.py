@@ -12,7 +12,7 @@ import pytest
 import yaml
 from conftest import INJECTORS, edit_params
 
-from oodrl.testing.pipeline import _environment, repro, run
+from oodrl.testing.pipeline import environment, repro, run
 
 pytestmark = pytest.mark.slow
 
@@ -36,9 +36,7 @@ def test_module_class_detector_is_fitted_scored_and_reported(repo, plugin_env):
     assert "speed" in (repo / "reports/tables.md").read_text()
 
 
-def test_failing_detector_names_itself_and_the_episode_and_keep_going_completes(
-    repo, plugin_env
-):
+def test_failing_detector_names_itself_and_the_episode_and_keep_going_completes(repo, plugin_env):
     block = {"class": "oodrl_test_plugin:ExplodingDetector", "explode_on_seed": 10001}
     edit_params(repo, _add_detector("exploding", block))
     done = run(repo, "dvc", "repro", check=False, env=plugin_env)
@@ -65,7 +63,7 @@ def test_killed_stage_leaves_no_half_written_output_and_next_repro_completes(rep
     process = subprocess.Popen(
         [sys.executable, "-m", "oodrl", "collect-id", "--policy", "models/policy.pt",
          "--out", "data/id.zarr"],
-        cwd=repo, env=_environment(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        cwd=repo, env=environment(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )  # fmt: skip
     while process.poll() is None and not list(store.parent.glob(".id.zarr.tmp-*")):
         time.sleep(0.0005)

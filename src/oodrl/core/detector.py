@@ -11,7 +11,7 @@ from __future__ import annotations
 from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
@@ -155,7 +155,3 @@ class BaseDetector(Component):
                 )
             outputs.append(DetectorOutput(scores))
         return outputs
-
-    def fitted_state(self) -> dict[str, Any]:
-        """Learned attributes (ending in `_`), for reproducibility checks."""
-        return {k: v for k, v in vars(self).items() if k.endswith("_")}

@@ -174,26 +174,3 @@ class TrajectorySet:
         }
         labels = None if self.labels is None else self.labels[index]
         return TrajectorySet(**take, labels=labels, attrs=dict(self.attrs))
-
-    @classmethod
-    def from_trajectories(
-        cls,
-        trajectories: list[Trajectory],
-        labels: np.ndarray | None = None,
-        attrs: Mapping[str, Any] | None = None,
-    ) -> TrajectorySet:
-        def stack(get):
-            return np.stack([np.asarray(get(t)) for t in trajectories])
-
-        return cls(
-            states=stack(lambda t: t.states),
-            actions=stack(lambda t: t.actions),
-            rewards=stack(lambda t: t.rewards),
-            next_states=stack(lambda t: t.next_states),
-            dones=stack(lambda t: t.dones),
-            executed_actions=stack(lambda t: t.executed_actions),
-            episode_index=stack(lambda t: t.info.get("episode_index", np.zeros(t.T, np.int32))),
-            seeds=np.array([int(t.info.get("seed", -1)) for t in trajectories], dtype=np.int64),
-            labels=labels,
-            attrs=dict(attrs or {}),
-        )

@@ -19,9 +19,6 @@ _HALF_W = 600 / _SCALE / 2
 _HALF_H = 400 / _SCALE / 2
 _LEG_DOWN = 18 / _SCALE
 
-#: Observation coordinates backed by continuous simulator state (leg contacts are not).
-KINEMATIC_COORDINATES = (0, 1, 2, 3, 4, 5)
-
 
 class LunarLanderAdapter:
     """Creates environments and exposes one live environment's state to online faults."""
@@ -29,7 +26,6 @@ class LunarLanderAdapter:
     env_id = "LunarLander-v3"
     state_dim = 8
     n_actions = 4
-    kinematic_coordinates = KINEMATIC_COORDINATES
 
     def __init__(self, **env_kwargs: Any) -> None:
         self.env_kwargs = env_kwargs

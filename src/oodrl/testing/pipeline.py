@@ -27,7 +27,8 @@ def project_files(root: Path) -> list[str]:
     return sorted(f for f in listed.split("\0") if f and (root / f).is_file())
 
 
-def _environment(extra: dict[str, str] | None = None) -> dict[str, str]:
+def environment(extra: dict[str, str] | None = None) -> dict[str, str]:
+    """The environment stage commands run with in a copy (plus `extra`)."""
     env = {**os.environ, **(extra or {})}
     # Stage commands call `oodrl`: make the running interpreter's scripts win on PATH.
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
@@ -44,7 +45,7 @@ def run(
 ) -> subprocess.CompletedProcess:
     """Run a command in the copy (DVC through the current interpreter), `env` added."""
     command = [sys.executable, "-m", "dvc", *args[1:]] if args[0] == "dvc" else list(args)
-    done = subprocess.run(command, cwd=repo, env=_environment(env), capture_output=True, text=True)
+    done = subprocess.run(command, cwd=repo, env=environment(env), capture_output=True, text=True)
     if check and done.returncode != 0:
         raise RuntimeError(
             f"`{' '.join(args)}` failed with exit code {done.returncode}:\n"
