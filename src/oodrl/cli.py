@@ -108,7 +108,7 @@ def evaluate_policy(
     mode: Annotated[str, typer.Option(help="greedy or noisy")] = "greedy",
 ) -> None:
     """Roll out full episodes and print the mean ± std return."""
-    from oodrl.policies.load import evaluate_policy as evaluate
+    from oodrl.policies.evaluate import evaluate_policy as evaluate
     from oodrl.policies.load import load_policy
 
     if mode not in ("greedy", "noisy"):

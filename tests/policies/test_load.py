@@ -10,7 +10,8 @@ import torch
 from torch import nn
 
 from oodrl.errors import PolicyError
-from oodrl.policies.load import evaluate_policy, load_policy
+from oodrl.policies.evaluate import evaluate_policy
+from oodrl.policies.load import load_policy
 from oodrl.policies.networks import NoisyQNetwork, mlp, scale_noise
 
 COMMITTED_POLICY = Path(__file__).resolve().parents[2] / "models" / "policy.pt"
@@ -81,7 +82,7 @@ def test_own_checkpoint_round_trips_greedy(checkpoint: Path, noisy_network: Nois
     actions = policy.act(obs, None)
     assert actions.dtype == np.int64 and actions.shape == (len(obs),)
     np.testing.assert_array_equal(actions, expected)
-    assert (policy.state_dim, policy.n_actions, policy.mode) == (8, 4, "greedy")
+    assert (policy.state_dim, policy.action_size, policy.mode) == (8, 4, "greedy")
     assert policy.sha256 == hashlib.sha256(checkpoint.read_bytes()).hexdigest()
 
 
@@ -106,7 +107,7 @@ def test_dimension_mismatch_is_a_policy_error(checkpoint: Path):
     with pytest.raises(PolicyError, match="8-dim observations"):
         load_policy(checkpoint, state_dim=6)
     with pytest.raises(PolicyError, match="4 actions"):
-        load_policy(checkpoint, n_actions=2)
+        load_policy(checkpoint, action_size=2)
 
 
 def test_unknown_checkpoint_version_is_a_policy_error(tmp_path: Path, noisy_network):
@@ -141,7 +142,7 @@ def test_plain_mlp_state_dict_with_architecture(tmp_path: Path, wrapper: str):
     np.testing.assert_array_equal(
         policy.act(obs, None), module(torch.from_numpy(obs)).argmax(1).numpy()
     )
-    assert (policy.state_dim, policy.n_actions, policy.kind) == (8, 4, "mlp")
+    assert (policy.state_dim, policy.action_size, policy.kind) == (8, 4, "mlp")
 
 
 def test_plain_noisy_state_dict_with_architecture(tmp_path: Path, noisy_network):
@@ -194,7 +195,7 @@ def test_sb3_models_load_and_act_deterministically(tmp_path: Path, algorithm: st
 
     policy = load_policy(tmp_path / "model.zip")
     assert policy.kind == f"sb3_{algorithm.lower()}"
-    assert (policy.state_dim, policy.n_actions) == (8, 4)
+    assert (policy.state_dim, policy.action_size) == (8, 4)
     obs = observations(64)
     expected, _ = model.predict(obs, deterministic=True)
     np.testing.assert_array_equal(policy.act(obs, None), expected)
@@ -287,7 +288,7 @@ def test_evaluate_policy_is_reproducible_in_both_modes(checkpoint: Path):
 
 @pytest.mark.skipif(not COMMITTED_POLICY.exists(), reason="models/policy.pt not trained yet")
 def test_committed_policy_evaluates_as_its_report_says():
-    policy = load_policy(COMMITTED_POLICY, state_dim=8, n_actions=4)
+    policy = load_policy(COMMITTED_POLICY, state_dim=8, action_size=4)
     assert policy.kind == "noisy_dqn"
     report = json.loads(COMMITTED_POLICY.with_suffix(".json").read_text())
     assert report["evaluation"]["mean"] >= 230  # SPEC §2 bar, over 30 held-out episodes

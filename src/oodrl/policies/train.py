@@ -15,11 +15,6 @@ On one machine with one torch thread, a given config gives byte-identical checkp
 from __future__ import annotations
 
 import copy
-import io
-import json
-import os
-import platform
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -29,13 +24,9 @@ import numpy as np
 import torch
 from torch import nn
 
-import oodrl
-from oodrl.policies.load import (
-    CHECKPOINT_FORMAT,
-    CHECKPOINT_VERSION,
-    QNetworkPolicy,
-    evaluate_policy,
-)
+from oodrl.policies.act import policy_from_checkpoint
+from oodrl.policies.checkpoint import save_policy
+from oodrl.policies.evaluate import evaluate_policy
 from oodrl.policies.networks import NoisyQNetwork
 from oodrl.policies.settings import TrainConfig
 
@@ -72,7 +63,7 @@ def greedy_returns(
     network: NoisyQNetwork, config: TrainConfig, episodes: int, seed: int
 ) -> np.ndarray:
     """Returns of the noise-free network on episodes seeded seed..seed+episodes-1."""
-    policy = QNetworkPolicy(copy.deepcopy(network), kind="noisy_dqn", mode="greedy")
+    policy = policy_from_checkpoint({"kind": "noisy_dqn"}, network.state_dict())
     return evaluate_policy(policy, episodes, seed, env_id=config.env_id)
 
 
@@ -155,82 +146,29 @@ def train(
 
     q_net.load_state_dict(best_state)
     final = greedy_returns(q_net, config, config.final_eval_episodes, config.final_eval_seed)
-    wall_time = time.perf_counter() - started
-    architecture = {
-        "kind": "noisy_dqn",
-        "state_dim": state_dim,
-        "n_actions": n_actions,
-        "hidden_sizes": list(config.hidden_sizes),
-        "sigma0": config.sigma0,
-    }
-    checkpoint = {
-        "format": CHECKPOINT_FORMAT,
-        "version": CHECKPOINT_VERSION,
-        "architecture": architecture,
-        "env_id": config.env_id,
-        "train_config": config.as_dict(),
-        "steps_trained": best_step,
-        "versions": _versions(),
-        "state_dict": {k: v.detach().clone().contiguous() for k, v in best_state.items()},
-    }
-    _atomic_write(policy_path, _torch_bytes(checkpoint))
-    report = {
-        "env_id": config.env_id,
-        "architecture": architecture,
-        "train_config": config.as_dict(),
-        "evaluation": {
-            "mode": "greedy",
-            "episodes": config.final_eval_episodes,
-            "seeds": [config.final_eval_seed + i for i in range(config.final_eval_episodes)],
-            "returns": [float(r) for r in final],
-            "mean": float(final.mean()),
-            "std": float(final.std()),
-            "min": float(final.min()),
-            "max": float(final.max()),
+    return save_policy(
+        policy_path,
+        report_path,
+        architecture={
+            "kind": "noisy_dqn",
+            "state_dim": state_dim,
+            "n_actions": n_actions,
+            "hidden_sizes": list(config.hidden_sizes),
+            "sigma0": config.sigma0,
         },
-        "tuning_evaluation": {
+        state_dict=best_state,
+        env_id=config.env_id,
+        train_config=config.as_dict(),
+        final_returns=final,
+        final_eval_seed=config.final_eval_seed,
+        tuning={
             "episodes": config.eval_episodes,
             "seeds_start": config.seed + TUNING_SEED_OFFSET,
             "best_mean": float(best_return),
             "best_step": best_step,
         },
-        "steps_trained": best_step,
-        "steps_run": step,
-        "learning_curve": [[s, m] for s, m in curve],
-        "wall_time_s": round(wall_time, 1),
-        "versions": _versions(),
-        "platform": platform.platform(),
-    }
-    _atomic_write(report_path, (json.dumps(report, indent=2, sort_keys=True) + "\n").encode())
-    return report
-
-
-def _versions() -> dict[str, str]:
-    return {
-        "oodrl": str(oodrl.__version__),
-        "torch": str(torch.__version__),
-        "gymnasium": str(gym.__version__),
-        "numpy": str(np.__version__),
-    }
-
-
-def _torch_bytes(obj: Any) -> bytes:
-    # Saving to a buffer keeps the zip's internal folder name fixed ("archive"), whatever the path.
-    buffer = io.BytesIO()
-    torch.save(obj, buffer)
-    return buffer.getvalue()
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder (never half-written)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.chmod(tmp, 0o644)  # mkstemp makes it private; the outputs are shared artefacts
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        steps_run=step,
+        learning_curve=curve,
+        wall_time_s=time.perf_counter() - started,
+        trainer={"algorithm": "NoisyNet double DQN (oodrl)"},
+    )

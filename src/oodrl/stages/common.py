@@ -5,23 +5,20 @@ from __future__ import annotations
 import json
 import os
 import pickle
-import platform
 import sys
 import time
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from oodrl import __version__
 from oodrl.errors import StoreError
+from oodrl.fileio import atomic_write_bytes, library_versions
 
 #: Side channel for per-stage wall times; deliberately not a DVC output (timings differ per run).
 TIMINGS_DIR = Path(".oodrl") / "timings"
 DETECTOR_FORMAT = "oodrl-detector"
-TRACKED_LIBRARIES = ("numpy", "scipy", "scikit-learn", "torch", "gymnasium", "zarr", "dvc")
 
 
 def progress_enabled(setting: str = "auto") -> bool:
@@ -45,27 +42,6 @@ def timed_stage(name: str) -> Iterator[None]:
     TIMINGS_DIR.mkdir(parents=True, exist_ok=True)
     record = {"stage": name, "wall_s": round(time.perf_counter() - start, 3)}
     (TIMINGS_DIR / f"{name.replace('@', '__')}.json").write_text(json.dumps(record))
-
-
-def library_versions(names: tuple[str, ...] = TRACKED_LIBRARIES) -> dict[str, str]:
-    versions = {"oodrl": __version__, "python": platform.python_version()}
-    for name in names:
-        try:
-            versions[name] = metadata.version(name)
-        except metadata.PackageNotFoundError:
-            versions[name] = "absent"
-    return versions
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode())
 
 
 def save_detector(path: Path, detector, name: str, params: dict[str, Any]) -> None:

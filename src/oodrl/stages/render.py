@@ -11,7 +11,8 @@ from typing import Any
 
 from oodrl import yamlio
 from oodrl.config import Params
-from oodrl.stages.common import TIMINGS_DIR, atomic_write_text, library_versions
+from oodrl.fileio import atomic_write_text, library_versions
+from oodrl.stages.common import TIMINGS_DIR
 from oodrl.stages.metrics import score_store
 from oodrl.stages.score import CLEAN_GROUP, HEADLINE_GROUP
 from oodrl.store import read_scores
