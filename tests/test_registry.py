@@ -1,4 +1,9 @@
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
+import yaml
 
 from oodrl.errors import RegistryError
 from oodrl.registry import Registry, import_path
@@ -43,3 +48,65 @@ def test_builtin_registries_list_the_protocol_components():
     assert len(DETECTORS.names()) == 8
     assert len(INJECTORS.names()) == 9
     assert "LunarLander-v3" in ENVIRONMENTS
+
+
+PROJECT_MODULE = """
+import numpy as np
+
+from oodrl.core import BaseDetector
+
+
+class Constant(BaseDetector):
+    name = "constant"
+
+    def _fit(self, trajectories):
+        pass
+
+    def _score(self, trajectory):
+        return np.zeros(trajectory.T)
+"""
+
+
+@pytest.fixture
+def project_dir(tmp_path, monkeypatch):
+    """An empty project directory as the current one, neither it nor '' on sys.path (as under
+    the `oodrl` console script); modules imported from it are forgotten afterwards."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", str(tmp_path))])
+    before = set(sys.modules)
+    yield tmp_path
+    for name in set(sys.modules) - before:
+        if name.startswith("oodrl_project_plugin"):
+            del sys.modules[name]
+
+
+def test_module_class_path_imports_from_the_project_directory(project_dir):
+    package = project_dir / "oodrl_project_plugin"
+    package.mkdir()
+    (package / "detectors.py").write_text(PROJECT_MODULE)
+    cls = Registry("detector").get("oodrl_project_plugin.detectors:Constant")
+    assert cls.name == "constant"
+    # The project directory stays importable: unpickling a fitted plugin detector needs it.
+    assert str(project_dir) in sys.path
+
+
+def test_a_project_module_missing_a_dependency_names_the_dependency(project_dir):
+    (project_dir / "oodrl_project_plugin_broken.py").write_text("import no_such_dependency_xyz\n")
+    with pytest.raises(RegistryError, match="No module named 'no_such_dependency_xyz'"):
+        import_path("oodrl_project_plugin_broken:Thing")
+
+
+def test_the_oodrl_command_finds_a_plugin_beside_params_yaml(tmp_path, repo_root):
+    """The console script (sys.path[0] = its bin directory) validates params naming a
+    `module:Class` in the directory it runs in."""
+    (tmp_path / "oodrl_project_plugin.py").write_text(PROJECT_MODULE)
+    params = yaml.safe_load((repo_root / "ci" / "params.yaml").read_text())
+    params["benchmark"]["detectors"].append("constant")
+    params["detectors"]["constant"] = {"class": "oodrl_project_plugin:Constant"}
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    oodrl = Path(sys.executable).parent / "oodrl"
+    done = subprocess.run(
+        [str(oodrl), "check-params"], cwd=tmp_path, capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    assert f"ok ({len(params['benchmark']['detectors'])} detectors" in done.stdout

@@ -2,18 +2,57 @@
 
 Built-ins register an import path (`"oodrl.detectors.kde:KdeDensity"`) in their subpackage's
 `__init__`; the object is imported on first use. Third parties add components through the
-entry-point groups `oodrl.<kind>` or by naming a `module:Class` path in params.yaml.
+entry-point groups `oodrl.<kind>` or by naming a `module:Class` path in params.yaml. Such a
+path's module, when no installed one has its name, is looked up in the project directory (the
+current directory, where `dvc repro` runs every stage command), so a user's own
+`mypkg/detectors.py` next to params.yaml works without packaging it, as under `python -m`.
 """
 
 from __future__ import annotations
 
 import difflib
 import importlib
+import os
+import sys
 from collections.abc import Iterator
 from importlib.metadata import entry_points
 from typing import Any
 
 from oodrl.errors import RegistryError
+
+
+def _is_missing(error: ModuleNotFoundError, module_name: str) -> bool:
+    """Whether `error` says `module_name` itself (or a parent package) is missing, as opposed
+    to a module it imports."""
+    return error.name is not None and (
+        module_name == error.name or module_name.startswith(error.name + ".")
+    )
+
+
+def _project_dir_on_path() -> bool:
+    """Add the current directory to sys.path; False if it was there already.
+
+    The `oodrl` console script starts with its own bin directory as sys.path[0], not the
+    project's (`python -m` would have the project's), so a plugin module beside params.yaml
+    would not import. Appended, so no project file shadows an installed module. The entry
+    stays: the plugin's lazy imports and unpickling its fitted detectors need it later.
+    """
+    cwd = os.getcwd()
+    if any(os.path.abspath(entry or os.curdir) == cwd for entry in sys.path):
+        return False
+    sys.path.append(cwd)
+    importlib.invalidate_caches()
+    return True
+
+
+def import_module(module_name: str) -> Any:
+    """Import a module; one that is not installed is looked up in the project directory."""
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as error:
+        if not _is_missing(error, module_name) or not _project_dir_on_path():
+            raise
+    return importlib.import_module(module_name)
 
 
 def import_path(path: str) -> Any:
@@ -22,9 +61,12 @@ def import_path(path: str) -> Any:
     if not sep or not module_name or not attribute:
         raise RegistryError(f"'{path}' is not an import path; expected 'package.module:Class'.")
     try:
-        module = importlib.import_module(module_name)
+        module = import_module(module_name)
     except ImportError as error:
-        raise RegistryError(f"Cannot import module '{module_name}' of '{path}': {error}") from None
+        raise RegistryError(
+            f"Cannot import module '{module_name}' of '{path}' (looked in the installed "
+            f"packages and in the project directory {os.getcwd()}): {error}"
+        ) from None
     try:
         return getattr(module, attribute)
     except AttributeError:
