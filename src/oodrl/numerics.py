@@ -19,6 +19,20 @@ result, a quantity that has one answer whatever the summation order:
 the rare entries whose interval straddles a float32 rounding boundary are computed with
 ``decimal`` at 50 significant digits. Elementwise IEEE operations (``+ − × ÷ √``, ``max``) are
 exact already and need no care.
+
+The detectors compute in float64, where the same problems appear: numpy's own ``exp``, ``log``,
+``tanh`` and FFT have per-CPU SIMD implementations that differ in the last bits, and BLAS
+products and LAPACK solves depend on the kernel. For them:
+
+- :func:`matmul` sums products in one fixed order with elementwise numpy operations (no BLAS);
+- :func:`spd_inverse` and :func:`spd_solve` are a Cholesky factorisation whose inner products
+  are ``math.fsum`` (exactly rounded);
+- :func:`exp`, :func:`log` and :func:`softplus` return the true value rounded to 32 significant
+  bits (relative precision 2⁻³²): certified from numpy's float64 result where its error
+  interval allows, else from ``decimal``.
+
+Integer-exact or order-fixed operations (sorting, ranking, ``np.sum`` along an axis, which numpy
+reduces in an order fixed by the array's shape) need nothing.
 """
 
 from __future__ import annotations
@@ -35,18 +49,22 @@ _TANH_ULPS = 8
 
 
 def linear(x: np.ndarray, weight: np.ndarray, bias: np.ndarray | None = None) -> np.ndarray:
-    """``x @ weight.T + bias`` for float32 inputs, correctly rounded to float32.
+    """``x @ weightᵀ + bias`` for float32 inputs, correctly rounded to float32.
 
-    ``x`` (n, k), ``weight`` (m, k), ``bias`` (m,) — all float32 (or exactly convertible).
+    ``x`` (..., n, k), ``weight`` (..., m, k), ``bias`` broadcastable to (..., n, m); leading
+    axes broadcast like ``np.matmul`` (an ensemble: one weight per member).
     """
     x32 = np.asarray(x, dtype=np.float32)
     w32 = np.asarray(weight, dtype=np.float32)
-    x64, w64 = x32.astype(np.float64), w32.astype(np.float64)
-    y = x64 @ w64.T
-    magnitude = np.abs(x64) @ np.abs(w64).T
-    k = x64.shape[-1]
+    x64 = x32.astype(np.float64)
+    w64_t = np.swapaxes(w32, -1, -2).astype(np.float64)
+    y = x64 @ w64_t
+    magnitude = np.abs(x64) @ np.abs(w64_t)
+    k = x32.shape[-1]
+    b32 = None
     if bias is not None:
-        b64 = np.asarray(bias, dtype=np.float32).astype(np.float64)
+        b32 = np.broadcast_to(np.asarray(bias, dtype=np.float32), y.shape)
+        b64 = b32.astype(np.float64)
         y += b64
         magnitude += np.abs(b64)
         k += 1
@@ -55,14 +73,16 @@ def linear(x: np.ndarray, weight: np.ndarray, bias: np.ndarray | None = None) ->
     gamma = k * _UNIT_ROUNDOFF / (1.0 - k * _UNIT_ROUNDOFF)
     bound = 2.0 * gamma * magnitude + np.finfo(np.float64).tiny
     result, uncertain = _round_within(y, bound)
-    for index in zip(*np.nonzero(uncertain), strict=True):
-        row, col = index[:-1], index[-1]
-        terms = [
-            Fraction(float(a)) * Fraction(float(b)) for a, b in zip(x32[row], w32[col], strict=True)
-        ]
-        if bias is not None:
-            terms.append(Fraction(float(np.float32(bias[col]))))
-        result[index] = _nearest_float32(sum(terms, Fraction(0)))
+    if uncertain.any():
+        rows = np.broadcast_to(x32, (*y.shape[:-1], x32.shape[-1]))
+        cols = np.broadcast_to(w32, (*y.shape[:-2], *w32.shape[-2:]))
+        for index in zip(*np.nonzero(uncertain), strict=True):
+            lead, row, col = index[:-2], index[-2], index[-1]
+            pairs = zip(rows[(*lead, row)], cols[(*lead, col)], strict=True)
+            terms = [Fraction(float(a)) * Fraction(float(b)) for a, b in pairs]
+            if b32 is not None:
+                terms.append(Fraction(float(b32[index])))
+            result[index] = _nearest_float32(sum(terms, Fraction(0)))
     return result
 
 
@@ -85,6 +105,140 @@ def tanh(x: np.ndarray) -> np.ndarray:
                 exact = Fraction((e2x - 1) / (e2x + 1))
                 result[index] = _nearest_float32(exact)
     return result
+
+
+def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` in float64, summing over the shared axis in index order, without BLAS.
+
+    ``a`` (..., k), ``b`` (k, m) or (k,). Each step is one elementwise multiply and one add,
+    which every CPU rounds identically; cost grows with k, so use it where k is small.
+    """
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    vector = b.ndim == 1
+    if vector:
+        b = b[:, None]
+    out = a[..., 0, None] * b[0]
+    for j in range(1, a.shape[-1]):
+        out += a[..., j, None] * b[j]
+    return out[..., 0] if vector else out
+
+
+def spd_cholesky(matrix: np.ndarray) -> np.ndarray:
+    """Lower-triangular L with L Lᵀ = matrix (symmetric positive definite), machine-independent."""
+    a = np.asarray(matrix, dtype=np.float64).tolist()
+    d = len(a)
+    lower = [[0.0] * d for _ in range(d)]
+    for j in range(d):
+        diagonal = a[j][j] - math.fsum(lower[j][k] * lower[j][k] for k in range(j))
+        if not diagonal > 0:
+            raise np.linalg.LinAlgError("matrix is not positive definite")
+        lower[j][j] = math.sqrt(diagonal)
+        for i in range(j + 1, d):
+            dot = math.fsum(lower[i][k] * lower[j][k] for k in range(j))
+            lower[i][j] = (a[i][j] - dot) / lower[j][j]
+    return np.array(lower)
+
+
+def spd_solve(matrix: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``matrix⁻¹ rhs`` for a symmetric positive definite matrix; rhs (d,) or (d, m)."""
+    lower = spd_cholesky(matrix).tolist()
+    b = np.asarray(rhs, dtype=np.float64)
+    columns = b.reshape(len(lower), -1).T.tolist()
+    d = len(lower)
+    solved = []
+    for column in columns:
+        y = [0.0] * d
+        for i in range(d):  # L y = b
+            y[i] = (column[i] - math.fsum(lower[i][k] * y[k] for k in range(i))) / lower[i][i]
+        x = [0.0] * d
+        for i in reversed(range(d)):  # Lᵀ x = y
+            tail = math.fsum(lower[k][i] * x[k] for k in range(i + 1, d))
+            x[i] = (y[i] - tail) / lower[i][i]
+        solved.append(x)
+    return np.array(solved).T.reshape(b.shape)
+
+
+def spd_inverse(matrix: np.ndarray) -> np.ndarray:
+    """The inverse of a symmetric positive definite matrix, made exactly symmetric."""
+    inverse = spd_solve(matrix, np.eye(len(matrix)))
+    return (inverse + inverse.T) / 2
+
+
+#: Significant bits kept by the certified transcendental functions.
+CERTIFIED_BITS = 32
+#: Max error of numpy's float64 exp/log/log1p on any CPU, in ulp, with a wide margin.
+_LIBM_ULPS = 8
+
+
+def exp(x: np.ndarray) -> np.ndarray:
+    """e^x rounded to 32 significant bits, the same on every machine (float64 array)."""
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(over="ignore", under="ignore"):
+        y = np.exp(x)
+    return _certified(y, x, lambda v: v.exp())
+
+
+def log(x: np.ndarray) -> np.ndarray:
+    """ln x (x > 0) rounded to 32 significant bits, the same on every machine (float64 array)."""
+    x = np.asarray(x, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        y = np.log(x)
+    return _certified(y, x, lambda v: v.ln())
+
+
+def softplus(x: np.ndarray) -> np.ndarray:
+    """ln(1 + e^x) rounded to 32 significant bits, the same on every machine (float64 array)."""
+    x = np.asarray(x, dtype=np.float64)
+    y = np.logaddexp(0.0, x)
+    return _certified(y, x, lambda v: (1 + v.exp()).ln())
+
+
+def _certified(y: np.ndarray, x: np.ndarray, reference) -> np.ndarray:
+    """``y`` ≈ f(x) rounded to CERTIFIED_BITS; entries numpy's error could flip use ``reference``
+    (f on a 50-digit ``decimal.Decimal``). Non-finite results pass through unchanged."""
+    finite = np.isfinite(y)
+    bound = _LIBM_ULPS * np.spacing(np.where(finite, y, 0.0))
+
+    def exact(index: tuple[int, ...]) -> float:
+        with decimal.localcontext() as context:
+            context.prec = 50
+            context.Emin, context.Emax = -999999, 999999
+            return float(reference(decimal.Decimal(float(x[index]))))
+
+    return certify(y, bound, exact)
+
+
+def certify(values: np.ndarray, bound: np.ndarray, exact, bits: int = CERTIFIED_BITS) -> np.ndarray:
+    """Round ``values`` to ``bits`` significant bits, the same on every machine.
+
+    ``values`` are computed by machine-dependent code but within ``bound`` of the true result;
+    where ``values ± bound`` round alike, that rounding is certainly the true result's. The other
+    entries (rare: about 2·bound / grid spacing) take ``exact(index)``, a float computed by
+    machine-independent code (``decimal``, ``fractions``), rounded the same way.
+    Non-finite values pass through unchanged.
+    """
+    shape = np.shape(values)
+    values = np.atleast_1d(np.asarray(values, dtype=np.float64))
+    bound = np.broadcast_to(bound, values.shape)
+    finite = np.isfinite(values)
+    # 2·bound + tiny: also covers the rounding of values ± bound themselves.
+    margin = 2 * np.where(finite, bound, 0.0) + np.finfo(np.float64).tiny
+    result = _round_bits(values, bits)
+    uncertain = (_round_bits(values - margin, bits) != _round_bits(values + margin, bits)) & finite
+    for index in zip(*np.nonzero(uncertain), strict=True):
+        result[index] = _round_bits(np.float64(exact(index if shape else ())), bits)
+    return result.reshape(shape)
+
+
+def _round_bits(y: np.ndarray, bits: int = CERTIFIED_BITS) -> np.ndarray:
+    """Round float64 values to ``bits`` significant bits, to nearest (Veltkamp split)."""
+    factor = 2.0 ** (53 - bits) + 1.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        scaled = y * factor
+        rounded = scaled - (scaled - y)
+    # Near the top of the float64 range the split overflows; such values stay as they are.
+    return np.where(np.isfinite(rounded), rounded, y)
 
 
 def _round_within(y: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,6 +1,7 @@
 """kde_density against an exact log-density (scipy cdist + logsumexp over every kernel).
 
-Tolerance: |error| <= 1e-9 · max(1, |log p̂|) nats — float64 round-off only — including points
+Tolerance: |error| <= 1e-7 · max(1, |log p̂|) nats — the log-density is certified to 24 significant
+bits (relative 6e-8) so that it is the same on every machine (SPEC §14) — including points
 hundreds to thousands of bandwidths from every kernel centre, where tree-based approximations
 (scikit-learn's KernelDensity) were measured several nats off.
 """
@@ -16,7 +17,7 @@ from scipy.stats import gaussian_kde
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.kde import KdeDensity, bandwidth_of, gaussian_kde_logpdf
 
-RTOL = 1e-9
+RTOL = 1e-7
 
 
 def exact_logpdf(x: np.ndarray, reference: np.ndarray, bandwidth: float) -> np.ndarray:
@@ -85,5 +86,5 @@ def test_epsilon_is_added_to_the_density():
     scored = _trajectory(np.array([[0.0, 0.0], [30.0, 30.0]]))
     plain = KdeDensity().fit([fit]).score(scored).scores
     capped = KdeDensity(epsilon=1e-6).fit([fit]).score(scored).scores
-    np.testing.assert_allclose(capped, -np.log(np.exp(-plain) + 1e-6), rtol=1e-12)
+    np.testing.assert_allclose(capped, -np.log(np.exp(-plain) + 1e-6), rtol=1e-9)
     assert capped[1] == pytest.approx(-np.log(1e-6))

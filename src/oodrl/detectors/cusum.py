@@ -26,6 +26,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from oodrl import numerics
 from oodrl.core.detector import BaseDetector
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
@@ -49,18 +50,21 @@ class LinearResidualModel:
 
     @classmethod
     def fit(cls, x: np.ndarray, y: np.ndarray, ridge: float) -> LinearResidualModel:
+        # numerics, not @/np.linalg: BLAS and LAPACK kernels differ per CPU (SPEC §14).
         n, d = x.shape
-        centred = x - x.mean(axis=0)
-        gram = centred.T @ centred / n + ridge * np.eye(d)
-        coefficients = np.linalg.solve(gram, centred.T @ (y - y.mean(axis=0)) / n)
-        intercept = y.mean(axis=0) - x.mean(axis=0) @ coefficients
-        residuals = y - x @ coefficients - intercept
+        x_mean, y_mean = x.mean(axis=0), y.mean(axis=0)
+        centred = x - x_mean
+        gram = numerics.matmul(centred.T, centred) / n + ridge * np.eye(d)
+        coefficients = numerics.spd_solve(gram, numerics.matmul(centred.T, y - y_mean) / n)
+        intercept = y_mean - numerics.matmul(x_mean, coefficients)
+        residuals = y - numerics.matmul(x, coefficients) - intercept
         scale = residuals.std(axis=0)
         return cls(coefficients, intercept, np.where(scale > 0, scale, 1.0))
 
     def residual(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """e = mean over coordinates of the squared scaled residual, one value per row."""
-        scaled = (y - x @ self.coefficients - self.intercept) / self.residual_scale
+        predicted = numerics.matmul(x, self.coefficients) + self.intercept
+        scaled = (y - predicted) / self.residual_scale
         return np.mean(scaled**2, axis=1)
 
 

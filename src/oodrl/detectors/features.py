@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oodrl import numerics
 from oodrl.core.trajectory import Trajectory
 from oodrl.errors import ContractError
 
@@ -136,12 +137,14 @@ class GaussianModel:
 
     @classmethod
     def fit(cls, x: np.ndarray, ridge: float) -> GaussianModel:
-        covariance = np.atleast_2d(np.cov(x, rowvar=False, bias=True))
+        # numerics, not np.cov/np.linalg: BLAS and LAPACK kernels differ per CPU (SPEC §14).
+        mean = x.mean(axis=0)
+        centred = x - mean
+        covariance = numerics.matmul(centred.T, centred) / len(x)
         regularised = covariance + ridge * np.eye(covariance.shape[0])
-        precision = np.linalg.inv(regularised)
-        return cls(x.mean(axis=0), (precision + precision.T) / 2)
+        return cls(mean, numerics.spd_inverse(regularised))
 
     def squared_distance(self, x: np.ndarray) -> np.ndarray:
         """(x − μ)ᵀ P (x − μ) for every row of x."""
         centred = x - self.mean
-        return np.einsum("ij,ij->i", centred @ self.precision, centred)
+        return (numerics.matmul(centred, self.precision) * centred).sum(axis=1)

@@ -18,11 +18,13 @@ forms of scipy's rules, n = number of reference points), or a float in standardi
 
 from __future__ import annotations
 
+import decimal
 from collections.abc import Sequence
 from typing import ClassVar
 
 import numpy as np
 
+from oodrl import numerics
 from oodrl.core.detector import BaseDetector
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
@@ -38,16 +40,25 @@ from oodrl.validation import Interval, Options
 
 BANDWIDTH_RULES = ("scott", "silverman")
 
+_UNIT_ROUNDOFF = 2.0**-53
+#: Significant bits of a certified log-density (relative resolution 2^-24 ≈ 6e-8).
+_KDE_BITS = 24
+
 #: Scored rows per block: (rows × reference) float64 temporaries stay cache-sized.
 _ROWS_PER_BLOCK = 128
 
 
 def bandwidth_of(rule: str | float, n: int, d: int) -> float:
-    """The kernel width h on standardised data for a rule name or a given float."""
+    """The kernel width h on standardised data for a rule name or a given float.
+
+    The rules' fractional powers are evaluated in ``decimal``: libm's ``pow`` may differ in the
+    last bit between machines (SPEC §14).
+    """
+    exponent = decimal.Decimal(-1) / (d + 4)
     if rule == "scott":
-        return float(n ** (-1.0 / (d + 4)))
+        return float(decimal.Decimal(n) ** exponent)
     if rule == "silverman":
-        return float((n * (d + 2) / 4.0) ** (-1.0 / (d + 4)))
+        return float((decimal.Decimal(n * (d + 2)) / 4) ** exponent)
     return float(rule)
 
 
@@ -56,23 +67,50 @@ def gaussian_kde_logpdf(x: np.ndarray, reference: np.ndarray, bandwidth: float) 
 
     −‖x − r‖²/(2h²) = x·r/h² − ‖r‖²/(2h²) − ‖x‖²/(2h²); the last term is constant per row and
     leaves the log-sum-exp, so each block needs one matrix product and one exp.
+
+    Machine independence (SPEC §14): the exponents are computed in a fixed order
+    (`numerics.matmul`), but numpy's exp and log differ in the last bits between CPUs. Those
+    differences move a row's result by at most (2n + 64)·u·(its magnitude), so the result is
+    certified to 24 significant bits (`numerics.certify`); the rare rows where that bound
+    straddles a rounding boundary are summed in ``decimal``.
     """
     n, d = reference.shape
     inv_h2 = 1.0 / bandwidth**2
     scaled_reference_t = np.ascontiguousarray(reference.T) * inv_h2
-    reference_term = 0.5 * inv_h2 * np.einsum("ij,ij->i", reference, reference)
-    log_norm = np.log(n) + 0.5 * d * np.log(2.0 * np.pi * bandwidth**2)
+    reference_term = 0.5 * inv_h2 * (reference * reference).sum(axis=1)
+    log_norm = float(
+        numerics.log(np.float64(n)) + 0.5 * d * numerics.log(np.float64(2.0 * np.pi * bandwidth**2))
+    )
     out = np.empty(x.shape[0])
+    bound = np.empty(x.shape[0])
     for start in range(0, x.shape[0], _ROWS_PER_BLOCK):
         block = x[start : start + _ROWS_PER_BLOCK]
-        exponents = block @ scaled_reference_t
-        exponents -= reference_term
-        peak = exponents.max(axis=1, keepdims=True)
-        exponents -= peak
-        np.exp(exponents, out=exponents)
-        row_term = 0.5 * inv_h2 * np.einsum("ij,ij->i", block, block)
-        out[start : start + _ROWS_PER_BLOCK] = np.log(exponents.sum(axis=1)) + peak[:, 0] - row_term
-    return out - log_norm
+        rows = slice(start, start + len(block))
+        exponents = _exponents(block, scaled_reference_t, reference_term)
+        peak = exponents.max(axis=1)
+        log_sum = np.log(np.exp(exponents - peak[:, None]).sum(axis=1))
+        row_term = 0.5 * inv_h2 * (block * block).sum(axis=1)
+        out[rows] = log_sum + peak - row_term - log_norm
+        magnitude = np.abs(log_sum) + np.abs(peak) + np.abs(row_term) + abs(log_norm) + 1.0
+        bound[rows] = (2 * n + 64) * _UNIT_ROUNDOFF * magnitude
+
+    def exact(index: tuple[int, ...]) -> float:
+        (row,) = index
+        exponents = _exponents(x[row : row + 1], scaled_reference_t, reference_term)[0]
+        row_term = 0.5 * inv_h2 * float((x[row] * x[row]).sum())
+        with decimal.localcontext() as context:
+            context.prec = 40
+            total = sum(decimal.Decimal(float(e)).exp() for e in exponents)
+            return float(total.ln() - decimal.Decimal(row_term) - decimal.Decimal(log_norm))
+
+    return numerics.certify(out, bound, exact, bits=_KDE_BITS)
+
+
+def _exponents(
+    block: np.ndarray, scaled_reference_t: np.ndarray, reference_term: np.ndarray
+) -> np.ndarray:
+    """x·r/h² − ‖r‖²/(2h²) for every row of ``block`` and every reference point."""
+    return numerics.matmul(block, scaled_reference_t) - reference_term
 
 
 class KdeDensity(BaseDetector):
@@ -131,5 +169,7 @@ class KdeDensity(BaseDetector):
         x = self.standardizer_.transform(stacked(trajectories, self._features))
         log_density = gaussian_kde_logpdf(x, self.reference_, self.bandwidth_)
         if self.epsilon > 0:
-            log_density = np.logaddexp(log_density, np.log(self.epsilon))
+            # log(p + ε) = log ε + softplus(log p − log ε), machine-independent.
+            log_epsilon = numerics.log(np.float64(self.epsilon))
+            log_density = log_epsilon + numerics.softplus(log_density - log_epsilon)
         return split_scores(-log_density, trajectories)

@@ -23,12 +23,15 @@ reset-spanning windows are part of the ID descriptor distribution rather than sp
 
 from __future__ import annotations
 
+import decimal
+import functools
 from collections.abc import Sequence
 from typing import ClassVar
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from oodrl import numerics
 from oodrl.core.detector import BaseDetector
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import GaussianModel, Standardizer, stacked
@@ -55,6 +58,50 @@ def _ratio_or_zero(numerator: np.ndarray, denominator: np.ndarray) -> np.ndarray
     return np.divide(numerator, denominator, out=np.zeros_like(numerator), where=positive)
 
 
+@functools.cache
+def dft_basis(window: int) -> tuple[np.ndarray, np.ndarray]:
+    """cos and sin of 2π·k·n/L, (L, L//2) for n < L and frequencies k = 1..L//2 (no DC term).
+
+    Evaluated with ``decimal`` (Taylor series at 40 digits), so the table is the same float64
+    on every machine whatever its libm; the power spectrum is then |Σ_n x_n e^{−2πikn/L}|².
+    """
+    with decimal.localcontext() as context:
+        context.prec = 40
+        two_pi = 2 * _decimal_pi()
+        # k·n mod L: the same angle in [0, 2π), where the Taylor series converges fast.
+        frequencies = range(1, window // 2 + 1)
+        angles = [[two_pi * (k * n % window) / window for k in frequencies] for n in range(window)]
+        cosines = [[float(_decimal_cos(a)) for a in row] for row in angles]
+        sines = [[float(_decimal_cos(a - two_pi / 4)) for a in row] for row in angles]
+    return np.array(cosines), np.array(sines)
+
+
+def _decimal_pi() -> decimal.Decimal:
+    """π to the context's precision (Machin's formula)."""
+    return 4 * (4 * _decimal_arctan_inverse(5) - _decimal_arctan_inverse(239))
+
+
+def _decimal_arctan_inverse(x: int) -> decimal.Decimal:
+    total, power, n, sign = decimal.Decimal(0), decimal.Decimal(1) / x, 1, 1
+    while power:
+        total += sign * power / n
+        power /= x * x
+        n, sign = n + 2, -sign
+        if power < decimal.Decimal(10) ** -(decimal.getcontext().prec + 5):
+            break
+    return total
+
+
+def _decimal_cos(angle: decimal.Decimal) -> decimal.Decimal:
+    total, term, n = decimal.Decimal(0), decimal.Decimal(1), 0
+    while True:
+        total += term
+        n += 2
+        term = -term * angle * angle / (n * (n - 1))
+        if abs(term) < decimal.Decimal(10) ** -(decimal.getcontext().prec + 5):
+            return total
+
+
 def window_descriptors(series: np.ndarray, window: int) -> np.ndarray:
     """(T − L + 1, 7·d) descriptors of every length-L window of a (T, d) series.
 
@@ -64,11 +111,13 @@ def window_descriptors(series: np.ndarray, window: int) -> np.ndarray:
     windows = sliding_window_view(series, window, axis=0)  # (n, d, L)
     mean = windows.mean(axis=-1)
     centred = windows - mean[..., None]
-    sum_squares = np.einsum("ndl,ndl->nd", centred, centred)
+    sum_squares = (centred * centred).sum(axis=-1)
     time = np.arange(window) - (window - 1) / 2.0
-    slope = centred @ (time / np.dot(time, time))
-    lag_products = np.einsum("ndl,ndl->nd", centred[..., :-1], centred[..., 1:])
-    power = np.abs(np.fft.rfft(centred, axis=-1)[..., 1:]) ** 2
+    # numerics.matmul and a DFT, not @ and np.fft: BLAS and numpy's FFT differ per CPU (SPEC §14).
+    slope = numerics.matmul(centred, time / (time * time).sum())
+    lag_products = (centred[..., :-1] * centred[..., 1:]).sum(axis=-1)
+    cosines, sines = dft_basis(window)
+    power = numerics.matmul(centred, cosines) ** 2 + numerics.matmul(centred, sines) ** 2
     frequencies = np.arange(1, power.shape[-1] + 1) / window
     return np.concatenate(
         [
@@ -78,7 +127,7 @@ def window_descriptors(series: np.ndarray, window: int) -> np.ndarray:
             _ratio_or_zero(lag_products, sum_squares),
             np.ptp(windows, axis=-1),
             np.abs(np.diff(windows, axis=-1)).mean(axis=-1),
-            _ratio_or_zero(power @ frequencies, power.sum(axis=-1)),
+            _ratio_or_zero(numerics.matmul(power, frequencies), power.sum(axis=-1)),
         ],
         axis=1,
     )
