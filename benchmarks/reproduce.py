@@ -1,10 +1,13 @@
-"""Prove the pipeline reproduces: two from-scratch runs in fresh copies give identical outputs.
+"""Prove the pipeline reproduces on other machines: from-scratch runs under different math
+kernels give identical outputs (SPEC §14).
 
     python benchmarks/reproduce.py --params ci/params.yaml
 
-For each of two fresh copies of the project (own git + DVC repo, no data): `dvc repro`; then
-check that every output hash in the two dvc.lock files is identical, that `dvc status -q`
-exits 0, and that a further `dvc repro` runs no stage. Exit code 1 on any difference.
+For each kernel selection of `oodrl.testing.kernels` (this CPU's own kernels, an AVX2 machine's,
+an SSE4.2 machine's), a fresh copy of the project (own git + DVC repo, no data) runs
+`dvc repro` with the libraries' kernels forced; then every output hash in the dvc.lock files must
+be identical, `dvc status -q` must exit 0, and a further `dvc repro` must run no stage.
+Exit code 1 on any difference.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from pathlib import Path
 
 import yaml
 
+from oodrl.testing.kernels import kernel_selections
 from oodrl.testing.pipeline import copy_project, lock_hashes, repro, run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -27,31 +31,37 @@ def main() -> int:
     parser.add_argument("--params", type=Path, default=ROOT / "ci" / "params.yaml")
     args = parser.parse_args()
     params = yaml.safe_load(args.params.read_text())
-    runs = []
+    runs = {}
     with tempfile.TemporaryDirectory(prefix="oodrl-reproduce-") as scratch:
-        for index in range(2):
-            repo = copy_project(ROOT, Path(scratch) / f"run{index}", params)
+        for name, selection in kernel_selections().items():
+            repo = copy_project(ROOT, Path(scratch) / name, params)
             start = time.perf_counter()
-            ran = repro(repo)
+            ran = repro(repo, env=selection)
             seconds = time.perf_counter() - start
-            print(f"run {index}: dvc repro ran {len(ran)} stages in {seconds:.1f} s")
-            status = run(repo, "dvc", "status", "-q", check=False)
+            print(f"{name} kernels: dvc repro ran {len(ran)} stages in {seconds:.1f} s", flush=True)
+            status = run(repo, "dvc", "status", "-q", check=False, env=selection)
             if status.returncode != 0:
-                print(f"FAIL: run {index}: `dvc status -q` exit {status.returncode}")
+                print(f"FAIL: {name}: `dvc status -q` exit {status.returncode}")
                 return 1
-            again = repro(repo)
+            again = repro(repo, env=selection)
             if again:
-                print(f"FAIL: run {index}: a second dvc repro re-ran {again}")
+                print(f"FAIL: {name}: a second dvc repro re-ran {again}")
                 return 1
-            runs.append(lock_hashes(repo))
-    first, second = runs
-    differing = sorted(p for p in set(first) | set(second) if first.get(p) != second.get(p))
-    if differing:
-        print(f"FAIL: {len(differing)} outputs differ between the runs: {differing}")
-        return 1
+            runs[name] = lock_hashes(repo)
+    reference_name, reference = next(iter(runs.items()))
+    for name, hashes in runs.items():
+        differing = sorted(
+            p for p in reference.keys() | hashes.keys() if reference.get(p) != hashes.get(p)
+        )
+        if differing:
+            print(
+                f"FAIL: {len(differing)} outputs differ between the {reference_name} and "
+                f"{name} runs: {differing}"
+            )
+            return 1
     print(
-        f"OK: {len(first)} outputs byte-identical across two from-scratch runs; "
-        "dvc status clean; a second repro ran nothing"
+        f"OK: {len(reference)} outputs byte-identical across {len(runs)} from-scratch runs under "
+        f"kernel selections {', '.join(runs)}; dvc status clean; a second repro ran nothing"
     )
     return 0
 

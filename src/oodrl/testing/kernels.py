@@ -1,0 +1,98 @@
+"""Kernel selections that stand in for other machines (SPEC §14).
+
+Math libraries pick a SIMD kernel per CPU at run time; these environment variables make them pick
+another one on this machine, as an older or different CPU would. oodrl's outputs must not change.
+Each variable has to be set before its library loads, so the selections apply to subprocesses.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import subprocess
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+
+#: Name → environment. "avx2" is a Haswell-class machine; "baseline" an x86-64-v2 one (SSE4.2).
+_SELECTIONS: dict[str, dict[str, str]] = {
+    "native": {},
+    "avx2": {
+        "MKL_ENABLE_INSTRUCTIONS": "AVX2",
+        "ATEN_CPU_CAPABILITY": "avx2",
+        "OPENBLAS_CORETYPE": "Haswell",
+        "NPY_DISABLE_CPU_FEATURES": "X86_V4 AVX512_ICL AVX512_SPR",
+    },
+    "baseline": {
+        "MKL_ENABLE_INSTRUCTIONS": "SSE4_2",
+        "ATEN_CPU_CAPABILITY": "default",
+        "OPENBLAS_CORETYPE": "Nehalem",
+        "NPY_DISABLE_CPU_FEATURES": "X86_V3 X86_V4 AVX512_ICL AVX512_SPR",
+    },
+}
+
+#: Variables some machines set for their own sake (an OpenBLAS that misbehaves on a CPU):
+#: where one is set already, the selections leave it as the machine wants it.
+_MACHINE_PINNED = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE")
+
+
+def kernel_selections() -> dict[str, dict[str, str]]:
+    """The selections to compare, minus any variable this machine pins itself."""
+    import os
+
+    pinned = {name for name in _MACHINE_PINNED if name in os.environ}
+    return {
+        name: {k: v for k, v in selection.items() if k not in pinned}
+        for name, selection in _SELECTIONS.items()
+    }
+
+
+#: The stages the check runs: collection (clean, and each injector at the headline and sweep
+#: severities), every detector's fit, and scoring of every set.
+_DRIVER = """
+import json, sys
+from pathlib import Path
+from oodrl.config import load_params
+from oodrl.stages import collect, fit, score
+
+params = load_params(sys.argv[1])
+out, policy = Path(sys.argv[2]), Path(sys.argv[3])
+injectors = json.loads(sys.argv[4])
+collect.collect_id(params, policy, out / "data/id.zarr")
+collect.collect_eval(params, policy, out / "data/eval.zarr")
+for injector in injectors:
+    for kind, write in [("ood", collect.collect_ood), ("sweep", collect.collect_sweep)]:
+        target = out / f"data/{kind}/{injector}.zarr"
+        write(params, injector, policy, out / "data/eval.zarr", target)
+for name in params.benchmark.detectors:
+    model = out / f"models/{name}.pkl"
+    fit.fit_detector(params, name, out / "data/id.zarr", model)
+    score.score_clean(name, model, out / "data/eval.zarr", out / f"scores/{name}/eval.zarr")
+    for injector in injectors:
+        data = [out / f"data/{kind}/{injector}.zarr" for kind in ("ood", "sweep")]
+        score.score_injector(name, injector, model, *data, out / f"scores/{name}/{injector}.zarr")
+"""
+
+
+def output_hashes(
+    selection: Mapping[str, str],
+    params_path: Path,
+    policy_path: Path,
+    out: Path,
+    injectors: tuple[str, ...] = ("gaussian_state_noise", "stuck_actuator"),
+) -> dict[str, str]:
+    """Run the stages in a fresh process under ``selection``; SHA-256 of every file written."""
+    import os
+
+    env = {**os.environ, **selection}
+    command = [sys.executable, "-c", _DRIVER, str(params_path), str(out), str(policy_path)]
+    done = subprocess.run(
+        [*command, json.dumps(list(injectors))], env=env, capture_output=True, text=True
+    )
+    if done.returncode != 0:
+        raise RuntimeError(f"stages failed under {dict(selection)}:\n{done.stderr[-4000:]}")
+    return {
+        str(path.relative_to(out)): hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in sorted(out.rglob("*"))
+        if path.is_file()
+    }
