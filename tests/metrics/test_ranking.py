@@ -102,8 +102,9 @@ def test_fpr95_hand_worked():
     negatives = np.array([0.0, 0.5, 1.0, 2.0])
     scores = np.concatenate([positives, negatives])[None, :]
     positive = np.r_[np.ones(10, bool), np.zeros(4, bool)][None, :]
-    # 95% of 10 positives -> keep all 10 -> τ = 1; negatives 1.0 and 2.0 are >= τ.
-    assert fpr_at_tpr_rows(scores, positive, ~positive, 0.95)[0] == 0.5
+    # 95% of 10 positives = 9.5: the 9 above τ = 1 and half of the one at τ; the negative 2.0
+    # is above τ, the negative 1.0 tied with it counts half: (1 + 0.5) / 4.
+    assert fpr_at_tpr_rows(scores, positive, ~positive, 0.95)[0] == 0.375
     # 80% -> the 8th largest positive, τ = 3: no negative reaches it.
     assert fpr_at_tpr_rows(scores, positive, ~positive, 0.8)[0] == 0.0
     # A tie with τ counts as a false alarm.
@@ -115,25 +116,57 @@ def test_fpr95_degenerate_cases():
     none = np.zeros_like(scores, dtype=bool)
     assert fpr_at_tpr_rows(scores, none, ~none, 0.95)[0] == 0.95
     assert fpr_at_tpr_rows(scores, ~none, none, 0.9)[0] == 0.9
+    # Constant scores are uninformative: the randomised threshold gives the target, not 1.
     constant = np.full((1, 4), 7.0)
-    assert (
-        fpr_at_tpr_rows(constant, np.array([[1, 1, 0, 0]], bool), np.array([[0, 0, 1, 1]], bool))[0]
-        == 1.0
-    )
+    positive = np.array([[1, 1, 0, 0]], bool)
+    assert fpr_at_tpr_rows(constant, positive, ~positive, 0.95)[0] == pytest.approx(0.95)
     with pytest.raises(ContractError, match="tpr_target"):
         fpr_at_tpr_rows(scores, none, ~none, 0.0)
 
 
-@settings(max_examples=60, deadline=None)
+def test_fpr95_ties_at_a_score_floor_count_as_a_fraction():
+    # The CUSUM case of issue 15: 18 of 20 positives well above a floor of 0, 2 positives and
+    # every negative at the floor. "≥ τ" with τ = 0 would flag every negative (FPR 1.0).
+    positives = np.r_[np.arange(1.0, 19.0), 0.0, 0.0]
+    negatives = np.zeros(20)
+    scores = np.concatenate([positives, negatives])[None, :]
+    positive = np.r_[np.ones(20, bool), np.zeros(20, bool)][None, :]
+    # 95% of 20 = 19 positives: the 18 above the floor and half of the 2 tied ones, so half of
+    # the tied negatives count: FPR = 0.5.
+    assert fpr_at_tpr_rows(scores, positive, ~positive, 0.95)[0] == pytest.approx(0.5)
+    # 90% = 18 positives: reached without the floor, no negative flagged.
+    assert fpr_at_tpr_rows(scores, positive, ~positive, 0.9)[0] == 0.0
+
+
+def interpolated_fpr(labels: np.ndarray, scores: np.ndarray, target: float) -> float:
+    """FPR at TPR `target` on scikit-learn's ROC curve, linear between its points."""
+    fpr, tpr, _ = roc_curve(labels, scores, drop_intermediate=False)
+    i = int(np.argmax(tpr >= target - 1e-12))
+    if tpr[i] <= target + 1e-12:
+        return float(fpr[i])
+    share = (target - tpr[i - 1]) / (tpr[i] - tpr[i - 1])
+    return float(fpr[i - 1] + share * (fpr[i] - fpr[i - 1]))
+
+
+@settings(max_examples=80, deadline=None)
 @given(scored_rows(max_rows=3, max_len=30), st.sampled_from([0.5, 0.9, 0.95, 1.0]))
-def test_fpr_at_tpr_matches_the_roc_curve(rows, target):
+def test_fpr_at_tpr_matches_the_interpolated_roc_curve(rows, target):
     scores, labels = rows
     result = fpr_at_tpr_rows(scores, labels, ~labels, target)
     for s, y, value in zip(scores, labels, result, strict=True):
         if not 0 < y.sum() < y.size:
             continue
-        fpr, tpr, _ = roc_curve(y, s, drop_intermediate=False)
-        assert value == pytest.approx(fpr[np.argmax(tpr >= target)], abs=1e-12)
+        assert value == pytest.approx(interpolated_fpr(y, s, target), abs=1e-12)
+
+
+@settings(max_examples=60, deadline=None)
+@given(scored_rows(max_rows=3, max_len=30))
+def test_fpr95_of_an_uninformative_tie_is_never_worse_than_chance(rows):
+    # Scores that cannot tell positives from negatives, all tied: exactly the target.
+    scores, labels = rows
+    tied = np.zeros_like(scores)
+    result = fpr_at_tpr_rows(tied, labels, ~labels, 0.95)
+    np.testing.assert_allclose(result, 0.95)
 
 
 def test_label_ranges_and_soft_labels():

@@ -169,7 +169,7 @@ MATCHED_AUPRC = Metric(
 MATCHED_FPR95 = Metric(
     False,
     lambda b, s: fpr_at_tpr_rows(*b.matched(), tpr_target=s.tpr_target),
-    "fraction of z[P] ≥ τ, τ the largest threshold keeping tpr_target of z̃[P]",
+    "FPR of z[P] at TPR tpr_target of z̃[P] on the interpolated ROC (ties at τ count a fraction)",
 )
 PRECISION = Metric(
     True, lambda b, s: precision_recall_f1(b.alarms, b.labels)[0], "alarm precision (0 if none)"

@@ -1,5 +1,8 @@
-"""Threshold-free ranking metrics of SPEC §6: AUROC, average precision, FPR at a TPR target and
-the range-based temporal AUROC. Score direction: larger = more anomalous.
+"""Ranking metrics of SPEC §6: AUROC, average precision (the step-wise area under the
+precision-recall curve, reported as "AUPRC"), FPR at a TPR target on the interpolated ROC curve,
+and the range-based temporal AUROC. Ties between scores are handled explicitly by each: they
+count ½ in the AUROC, as one threshold in the average precision and as a fraction at the
+FPR-at-TPR operating point. Score direction: larger = more anomalous.
 
 Every function works on rows: `scores` (N, n) float64, one row per episode, and boolean masks
 `positive` / `negative` (N, n) that say which entries are positives and which negatives; an entry
@@ -110,25 +113,46 @@ def average_precision_rows(
 def fpr_at_tpr_rows(
     scores: np.ndarray, positive: np.ndarray, negative: np.ndarray, tpr_target: float = 0.95
 ) -> np.ndarray:
-    """False-positive rate at the largest threshold that keeps `tpr_target` of the positives.
+    """False-positive rate at true-positive rate `tpr_target` on the interpolated ROC curve.
 
-    τ = the k-th largest positive score, k = ⌈tpr_target · n_pos⌉ (so ≥ tpr_target of the
-    positives are ≥ τ and no larger τ does that); FPR = #{negatives ≥ τ} / n_neg. Perfect
-    separation gives 0, an uninformative detector ≈ tpr_target. Rows without positives or
-    without negatives get `tpr_target`, the uninformative value.
+    τ = the k-th largest positive score, k = ⌈tpr_target · n_pos⌉: the largest threshold that
+    can reach the target. Scores above τ always alarm; a score *equal* to τ alarms with the
+    probability q that makes the expected TPR exactly `tpr_target` (a randomised threshold),
+
+        q = (tpr_target · n_pos − #{pos > τ}) / #{pos = τ},
+        FPR = (#{neg > τ} + q · #{neg = τ}) / n_neg,
+
+    which is the linear interpolation of scikit-learn's `roc_curve` between the points of the
+    thresholds just above τ and at τ. Without ties at τ, q = 1 and FPR = #{neg ≥ τ} / n_neg.
+    With ties, a deterministic "≥ τ" would count every tied negative as a false positive: when
+    a detector has a floor (CUSUM's 0) holding ≥ 5% of the positives and most negatives,
+    τ = the floor and FPR ≈ 1, "worse than chance" for a detector with a high AUROC. The
+    randomised threshold counts a tie as a fraction instead, so constant scores give
+    `tpr_target` (chance) and no tie can do worse than that. Perfect separation gives 0.
+    Rows without positives or without negatives get `tpr_target`, the uninformative value.
     """
     if not 0.0 < tpr_target <= 1.0:
         raise ContractError(f"tpr_target must be in (0, 1]; got {tpr_target}.")
     scores, positive, negative = _rows(scores, positive, negative)
     n_pos = positive.sum(axis=1)
     n_neg = negative.sum(axis=1)
+    wanted = _exact_count(tpr_target * n_pos)
     positives_descending = -np.sort(-np.where(positive, scores, -np.inf), axis=1)
-    # The tolerance keeps float noise (0.95 · 100 = 95.00000000000001) from adding a positive.
-    k = np.maximum(np.ceil(tpr_target * n_pos - 1e-9).astype(np.int64), 1)
+    k = np.maximum(np.ceil(wanted).astype(np.int64), 1)
     tau = np.take_along_axis(positives_descending, (k - 1)[:, None], axis=1)
-    false_alarms = (negative & (scores >= tau)).sum(axis=1)
+    above, tied = scores > tau, scores == tau
+    positives_tied = (positive & tied).sum(axis=1)
+    fraction = (wanted - (positive & above).sum(axis=1)) / np.maximum(positives_tied, 1)
+    fraction = np.clip(fraction, 0.0, 1.0)
+    false_alarms = (negative & above).sum(axis=1) + fraction * (negative & tied).sum(axis=1)
     fpr = false_alarms / np.maximum(n_neg, 1)
     return np.where((n_pos > 0) & (n_neg > 0), fpr, tpr_target)
+
+
+def _exact_count(count: np.ndarray) -> np.ndarray:
+    """A fractional count with float noise (0.95 · 100 = 95.00000000000001) snapped to integers."""
+    nearest = np.round(count)
+    return np.where(np.abs(count - nearest) < 1e-9, nearest, count)
 
 
 def auroc(scores: np.ndarray, labels: np.ndarray) -> float:
