@@ -76,7 +76,7 @@ def test_sweep_and_scores_round_trip(tmp_path, heuristic_clean):
 
 
 def test_missing_store_names_the_stage(tmp_path):
-    with pytest.raises(StoreError, match=r"missing.*dvc repro -f collect_eval"):
+    with pytest.raises(StoreError, match=r"missing.*dvc repro -s -f collect_eval"):
         read_trajectories(tmp_path / "eval.zarr", stage="collect_eval")
 
 
@@ -84,7 +84,7 @@ def test_truncated_store_is_detected(tmp_path, heuristic_clean):
     path = tmp_path / "t.zarr"
     write_trajectories(path, heuristic_clean)
     shutil.rmtree(path / "states" / "c")
-    with pytest.raises(StoreError, match=r"'/?states' is truncated or corrupt.*dvc repro -f x"):
+    with pytest.raises(StoreError, match=r"'/?states' is truncated or corrupt.*dvc repro -s -f x"):
         read_trajectories(path, stage="x")
 
 

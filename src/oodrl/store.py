@@ -92,8 +92,15 @@ def write_store(path: Path, groups: Mapping[str, tuple[Mapping[str, np.ndarray],
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def _rerun_hint(stage: str | None) -> str:
-    return f"re-run `dvc repro -f {stage}`" if stage else "re-run the stage that writes it"
+def rerun_hint(stage: str | None) -> str:
+    """How to rebuild a broken output: the one hint every error message uses.
+
+    `-s` (single item) re-runs that stage alone. Plain `-f` would force every upstream stage
+    too, train_policy included: 13 minutes, and it overwrites the committed policy.
+    """
+    if not stage:
+        return "re-run the stage that writes it"
+    return f"re-run only that stage with `dvc repro -s -f {stage}`"
 
 
 def _open_group(path: Path, expected_format: str, stage: str | None):
@@ -101,15 +108,15 @@ def _open_group(path: Path, expected_format: str, stage: str | None):
 
     path = Path(path)
     if not (path / "zarr.json").is_file():
-        raise StoreError(f"{path}: store is missing or incomplete; {_rerun_hint(stage)}.")
+        raise StoreError(f"{path}: store is missing or incomplete; {rerun_hint(stage)}.")
     try:
         root = zarr.open_group(str(path), mode="r", zarr_format=3)
         found = root.attrs.get("format")
     except Exception as error:  # zarr raises many kinds on damaged metadata
-        raise StoreError(f"{path}: unreadable store ({error}); {_rerun_hint(stage)}.") from None
+        raise StoreError(f"{path}: unreadable store ({error}); {rerun_hint(stage)}.") from None
     if found != expected_format:
         raise StoreError(
-            f"{path}: not an {expected_format} store (format {found!r}); {_rerun_hint(stage)}."
+            f"{path}: not an {expected_format} store (format {found!r}); {rerun_hint(stage)}."
         )
     return root
 
@@ -122,13 +129,12 @@ def _read_arrays(group, path: Path, stage: str | None) -> dict[str, np.ndarray]:
             data = np.asarray(group[name][...])
         except Exception as error:
             raise StoreError(
-                f"{path}: array '{group.path}/{name}' is unreadable ({error}); "
-                f"{_rerun_hint(stage)}."
+                f"{path}: array '{group.path}/{name}' is unreadable ({error}); {rerun_hint(stage)}."
             ) from None
         if _digest(data) != digest:
             raise StoreError(
                 f"{path}: array '{group.path}/{name}' is truncated or corrupt (checksum "
-                f"mismatch); {_rerun_hint(stage)}."
+                f"mismatch); {rerun_hint(stage)}."
             )
         arrays[name] = data
     return arrays

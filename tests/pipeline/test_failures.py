@@ -85,7 +85,7 @@ def test_corrupt_store_and_pickle_give_clear_errors(repo):
                "models/detectors/kde_density.pkl", "--eval", "data/eval.zarr", "--out",
                "scores/x.zarr", check=False)  # fmt: skip
     assert done.returncode == 1
-    assert "data/eval.zarr" in done.stderr and "dvc repro -f collect_eval" in done.stderr
+    assert "data/eval.zarr" in done.stderr and "dvc repro -s -f collect_eval" in done.stderr
     assert done.stderr.count("\n") == 1
 
     (repo / "models/detectors/kde_density.pkl").write_bytes(b"not a pickle")
@@ -93,4 +93,4 @@ def test_corrupt_store_and_pickle_give_clear_errors(repo):
                "models/detectors/kde_density.pkl", "--eval", "data/id.zarr", "--out",
                "scores/x.zarr", check=False)  # fmt: skip
     assert done.returncode == 1
-    assert "dvc repro -f fit@kde_density" in done.stderr and "Traceback" not in done.stderr
+    assert "dvc repro -s -f fit@kde_density" in done.stderr and "Traceback" not in done.stderr

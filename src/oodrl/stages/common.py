@@ -15,6 +15,7 @@ from typing import Any
 
 from oodrl.errors import StoreError
 from oodrl.fileio import atomic_write_bytes, library_versions
+from oodrl.store import rerun_hint
 
 #: Side channel for per-stage wall times; deliberately not a DVC output (timings differ per run).
 TIMINGS_DIR = Path(".oodrl") / "timings"
@@ -58,7 +59,7 @@ def save_detector(path: Path, detector, name: str, params: dict[str, Any]) -> No
 
 def load_detector(path: Path, stage: str):
     """Load a pickle written by `save_detector` (only ever from the pipeline's own paths)."""
-    hint = f"re-run `dvc repro -f {stage}`"
+    hint = rerun_hint(stage)
     if not path.is_file():
         raise StoreError(f"{path}: fitted detector is missing; {hint}.")
     try:

@@ -15,14 +15,14 @@ from oodrl.fileio import atomic_write_text, library_versions
 from oodrl.stages.common import TIMINGS_DIR
 from oodrl.stages.metrics import score_store
 from oodrl.stages.score import CLEAN_GROUP, HEADLINE_GROUP
-from oodrl.store import read_scores
+from oodrl.store import read_scores, rerun_hint
 
 
 def _load_yaml(path: Path) -> Any:
     from oodrl.errors import StoreError
 
     if not Path(path).is_file():
-        raise StoreError(f"{path}: missing; re-run `dvc repro -f metrics`.")
+        raise StoreError(f"{path}: missing; {rerun_hint('metrics')}.")
     return yamlio.load(Path(path).read_text())
 
 
