@@ -1,8 +1,8 @@
 """Built-in OOD detectors (SPEC §5), registered by name and imported on first use.
 
 Score direction, for every detector: a larger score means more anomalous. This module imports
-nothing heavy: each detector's module (and torch, for the neural ones) loads only when the
-registry is asked for it. Plugins register through the `oodrl.detectors` entry-point group.
+nothing heavy: each detector's module loads only when the registry is asked for it. Plugins
+register through the `oodrl.detectors` entry-point group.
 
 Besides its own parameters (see each class), every detector takes `threshold_rule`
 ("percentile", or "max" = the largest held-out score; default "percentile", `pedm` "max"),

@@ -3,6 +3,10 @@
 z_t = ‖x_t − g(f(x_t))‖², x_t the standardised features of step t (state by default), f an MLP
 encoder to a `latent_dim` bottleneck and g its mirror-image decoder, trained with the mean squared
 reconstruction error on the fit set. The error is measured in standardised units.
+
+The networks are ReLU MLPs trained with Adam in numpy (`oodrl.detectors.mlp`): ReLU, unlike
+SiLU or tanh, is exact, and every product is correctly rounded, so the fitted weights and the
+scores are the same bytes on every machine (SPEC §14).
 """
 
 from __future__ import annotations
@@ -21,11 +25,11 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.detectors.neural import TorchDetector, chunked_scores
+from oodrl.detectors.neural import NeuralDetector, chunked_scores
 from oodrl.validation import Interval, Options
 
 
-class Autoencoder(TorchDetector):
+class Autoencoder(NeuralDetector):
     """Squared reconstruction error of standardised step features.
 
     Parameters
@@ -38,8 +42,6 @@ class Autoencoder(TorchDetector):
     epochs : int >= 1, default 40
     batch_size : int >= 1, default 256
     lr : float > 0, default 3e-3
-    device : "auto" | "cpu" | "cuda", default "auto"
-        Where the network trains ("auto" = CUDA when available); scoring runs in numpy.
     """
 
     name: ClassVar[str] = "autoencoder"
@@ -58,7 +60,6 @@ class Autoencoder(TorchDetector):
         epochs: int = 40,
         batch_size: int = 256,
         lr: float = 3e-3,
-        device: str = "auto",
         threshold_rule: str = "percentile",
         threshold_percentile: float = 99.0,
         seed: int = 0,
@@ -72,36 +73,17 @@ class Autoencoder(TorchDetector):
         self.epochs = epochs
         self.batch_size = batch_size
         self.lr = lr
-        self.device = device
 
     def _features(self, trajectory: Trajectory) -> np.ndarray:
         return trajectory_features(trajectory, self.features, self.action_encoding_)
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
-        from oodrl.detectors.torch_utils import (
-            EnsembleMLP,
-            member_indices,
-            member_mse,
-            seeded_generator,
-            train_ensemble,
-        )
-
         self.action_encoding_ = ActionEncoding.fit(trajectories)
         x = stacked(trajectories, self._features)
         self.standardizer_ = Standardizer.fit(x)
-        generator = seeded_generator(self.seed)
-        layers = [*self.hidden_sizes, self.latent_dim, *reversed(self.hidden_sizes)]
-        model = EnsembleMLP(1, x.shape[1], x.shape[1], layers, generator)
         z = self.standardizer_.transform(x)
-        self.weights_ = train_ensemble(
-            model,
-            z,
-            z,
-            member_mse,
-            self._train_settings(),
-            member_indices(1, len(z), False, generator),
-            generator,
-        )
+        layers = [*self.hidden_sizes, self.latent_dim, *reversed(self.hidden_sizes)]
+        self._train(1, z, z, z.shape[1], "mse", bootstrap=False, hidden_sizes=layers)
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
         z = self.standardizer_.transform(stacked(trajectories, self._features))

@@ -8,6 +8,10 @@ fit transitions. The score is their spread about the ensemble mean:
 
 in standardised increment units. It uses (s_t, a_t) only, never the observed s_{t+1}: it flags
 inputs the ensemble has not learned, not transitions that contradict what it has learned.
+
+The networks are ReLU MLPs trained with Adam in numpy (`oodrl.detectors.mlp`): ReLU, unlike
+SiLU or tanh, is exact, and every product is correctly rounded, so the fitted weights and the
+scores are the same bytes on every machine (SPEC §14).
 """
 
 from __future__ import annotations
@@ -37,8 +41,6 @@ class EnsembleDisagreement(TransitionEnsemble):
     epochs : int >= 1, default 30
     batch_size : int >= 1, default 256
     lr : float > 0, default 1e-3
-    device : "auto" | "cpu" | "cuda", default "auto"
-        Where the networks train ("auto" = CUDA when available); scoring runs in numpy.
     """
 
     name: ClassVar[str] = "ensemble_disagreement"
@@ -55,7 +57,6 @@ class EnsembleDisagreement(TransitionEnsemble):
         epochs: int = 30,
         batch_size: int = 256,
         lr: float = 1e-3,
-        device: str = "auto",
         threshold_rule: str = "percentile",
         threshold_percentile: float = 99.0,
         seed: int = 0,
@@ -68,7 +69,6 @@ class EnsembleDisagreement(TransitionEnsemble):
         self.epochs = epochs
         self.batch_size = batch_size
         self.lr = lr
-        self.device = device
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
         self._fit_ensemble(trajectories, "mse", outputs_per_coordinate=1, bootstrap=True)

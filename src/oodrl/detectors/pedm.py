@@ -16,6 +16,10 @@ deterministic, a trajectory's scores do not depend on what it is batched with, a
 trajectory and its matched clean one see the same noise (common random numbers).
 
 The alarm threshold defaults to the maximum held-out score (`threshold_rule="max"`).
+
+The networks are ReLU MLPs trained with Adam in numpy (`oodrl.detectors.mlp`): ReLU, unlike
+SiLU or tanh, is exact, and every product is correctly rounded, so the fitted weights and the
+scores are the same bytes on every machine (SPEC §14).
 """
 
 from __future__ import annotations
@@ -25,13 +29,15 @@ from typing import ClassVar
 
 import numpy as np
 
+from oodrl import numerics
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
     increments,
     split_scores,
     stacked,
 )
-from oodrl.detectors.neural import TransitionEnsemble, chunked_scores, gaussian_mean_and_logvar
+from oodrl.detectors.mlp import gaussian_mean_and_logvar
+from oodrl.detectors.neural import TransitionEnsemble, chunked_scores
 from oodrl.validation import Interval
 
 
@@ -50,8 +56,6 @@ class Pedm(TransitionEnsemble):
     batch_size : int >= 1, default 256
     lr : float > 0, default 1e-3
         Adam learning rate.
-    device : "auto" | "cpu" | "cuda", default "auto"
-        Where the networks train ("auto" = CUDA when available); scoring runs in numpy.
     threshold_rule : default "max"
         The maximum held-out score (SPEC §5); "percentile" uses `threshold_percentile`.
     """
@@ -72,7 +76,6 @@ class Pedm(TransitionEnsemble):
         epochs: int = 30,
         batch_size: int = 256,
         lr: float = 1e-3,
-        device: str = "auto",
         threshold_rule: str = "max",
         threshold_percentile: float = 99.0,
         seed: int = 0,
@@ -86,7 +89,6 @@ class Pedm(TransitionEnsemble):
         self.epochs = epochs
         self.batch_size = batch_size
         self.lr = lr
-        self.device = device
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
         # Two outputs per coordinate: the Gaussian mean and log-variance of each increment.
@@ -112,7 +114,7 @@ class Pedm(TransitionEnsemble):
             # s_{t+1} − ŝ^{(m,k)}_t = residual − σ_m ε^{(m,k)}_t at each row's own step index,
             # computed in place in one (n, M, d_s, K) buffer.
             errors = noise[steps[rows]]
-            errors *= np.exp(0.5 * logvar)[..., None]
+            errors *= numerics.exp(0.5 * logvar)[..., None]
             np.subtract(residual[..., None], errors, out=errors)
             errors *= errors
             return errors.sum(axis=2).reshape(len(errors), -1).min(axis=1)
