@@ -1,0 +1,330 @@
+"""The README's instructions, followed literally in a fresh copy of the project, do what it says.
+
+The blocks are parsed out of README.md at test time (by section heading and fence language), so
+an edit to the README is what gets tested. The walk-through runs on tiny params (ci/params.yaml
+with one injector and only the detectors the README's knobs name) to stay around a minute.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import pytest
+import yaml
+
+from oodrl.testing.pipeline import copy_project, lock_hashes, run
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+ADD_DETECTOR = "Add a detector"
+CHANGE_KNOB = "Change a knob, compare runs"
+READING = "Reading the results"
+COMPONENTS = "Components"
+#: Inline `oodrl …` commands the README names that the walk-through runs (cheap, read-only).
+INLINE_COMMANDS = ("list", "check-params", "show")
+
+
+# -- parsing README.md ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Block:
+    language: str
+    text: str
+
+
+@dataclass
+class Section:
+    prose: str
+    blocks: list[Block]
+
+
+def parse_sections(markdown: str) -> dict[str, Section]:
+    """Heading title -> its prose and fenced blocks (up to the next heading of any level).
+
+    Fences are tracked so a `# path` comment inside a code block is not taken for a heading.
+    """
+    sections: dict[str, Section] = {}
+    current = sections.setdefault("", Section("", []))
+    fence: list[str] | None = None
+    language = ""
+    for line in markdown.splitlines():
+        if fence is not None:
+            if line.startswith("```"):
+                current.blocks.append(Block(language, "\n".join(fence) + "\n"))
+                fence = None
+            else:
+                fence.append(line)
+        elif line.startswith("```"):
+            fence, language = [], line[3:].strip()
+        elif heading := re.match(r"#{1,6} (.+)", line):
+            current = sections.setdefault(heading.group(1).strip(), Section("", []))
+        else:
+            current.prose += line + "\n"
+    assert fence is None, "README.md has an unclosed code fence"
+    return sections
+
+
+def blocks(section: Section, language: str) -> list[str]:
+    return [b.text for b in section.blocks if b.language == language]
+
+
+def shell_commands(script: str) -> list[str]:
+    """A bash block split into its commands; a quoted argument may span lines."""
+    commands, pending = [], ""
+    for line in script.splitlines():
+        pending += line + "\n"
+        try:
+            words = shlex.split(pending, comments=True)
+        except ValueError:  # an open quote: the command goes on on the next line
+            continue
+        if pending.rstrip().endswith("\\"):
+            continue
+        if words:
+            commands.append(pending.strip())
+        pending = ""
+    assert not pending.strip(), f"unterminated command in a README block: {pending!r}"
+    return commands
+
+
+def argv(command: str) -> list[str]:
+    return shlex.split(command, comments=True)
+
+
+def set_params(command: str) -> dict[str, str]:
+    """The `-S key=value` overrides of a `dvc exp run` command."""
+    words = argv(command)
+    pairs = [words[i + 1] for i, w in enumerate(words[:-1]) if w in ("-S", "--set-param")]
+    return dict(pair.split("=", 1) for pair in pairs)
+
+
+def inline_oodrl_commands(markdown: str) -> dict[str, str]:
+    """Subcommand -> the first inline `oodrl <subcommand> …` the README names."""
+    found: dict[str, str] = {}
+    for command in re.findall(r"`(oodrl [^`]+)`", markdown):
+        found.setdefault(command.split()[1], command)
+    return found
+
+
+def merge_params(params: dict[str, Any], snippet: dict[str, Any]) -> None:
+    """Apply a README params snippet: `[..., x]` appends to the existing list, a mapping
+    merges key by key, anything else replaces."""
+    for key, value in snippet.items():
+        if isinstance(value, dict) and isinstance(params.get(key), dict):
+            merge_params(params[key], value)
+        elif isinstance(value, list) and "..." in value:
+            existing = params.get(key, [])
+            params[key] = existing + [v for v in value if v != "..." and v not in existing]
+        else:
+            params[key] = value
+
+
+# -- the fresh project ---------------------------------------------------------------------------
+def tiny_params(repo_root: Path, knobs: dict[str, str]) -> dict[str, Any]:
+    """ci/params.yaml on one injector and the detectors the README's knobs name."""
+    params = yaml.safe_load((repo_root / "ci" / "params.yaml").read_text())
+    named = [k.split(".")[1] for k in knobs if k.startswith("detectors.")]
+    injectors = [k.split(".")[2] for k in knobs if k.startswith("anomaly.injectors.")]
+    params["benchmark"] = {
+        "detectors": list(dict.fromkeys(named)) or params["benchmark"]["detectors"][:1],
+        "injectors": list(dict.fromkeys(injectors)) or params["benchmark"]["injectors"][:1],
+    }
+    params["executor"]["workers"] = 1
+    return params
+
+
+def stages_ran(output: str) -> list[str]:
+    return sorted(
+        line.split("'")[1] for line in output.splitlines() if line.startswith("Running stage '")
+    )
+
+
+def sh(repo: Path, command: str) -> str:
+    """Run one README command in the project with bash, as a user would type it."""
+    done = run(repo, "bash", "-c", command)
+    return done.stdout + done.stderr
+
+
+def require_committed_policy(repo: Path) -> None:
+    """Fail in seconds, not after 13 minutes of training, when dvc.lock would retrain."""
+    status = json.loads(run(repo, "dvc", "status", "--json", "train_policy").stdout or "{}")
+    if status:
+        pytest.fail(
+            f"train_policy is out of date with dvc.lock ({status}); any `dvc repro` would "
+            "retrain the policy. Commit a dvc.lock that matches the policy code."
+        )
+
+
+def readme_knobs(sections: dict[str, Section]) -> dict[str, str]:
+    knobs: dict[str, str] = {}
+    for script in blocks(sections[CHANGE_KNOB], "bash"):
+        for command in shell_commands(script):
+            knobs.update(set_params(command))
+    return knobs
+
+
+# -- following the README ------------------------------------------------------------------------
+def add_detector(repo: Path, section: Section) -> list[str]:
+    """Write the python block to the file its first-line comment names, apply the params
+    snippet, run the bash blocks; returns the names the snippet adds to benchmark.detectors."""
+    (python,) = blocks(section, "python")
+    path = re.match(r"# (\S+\.py)\n", python)
+    assert path, "the README's detector code must start with a `# path/to/module.py` comment"
+    target = repo / path.group(1)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(python)
+
+    (snippet_text,) = blocks(section, "yaml")
+    snippet = yaml.safe_load(snippet_text)
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    before = list(params["benchmark"]["detectors"])
+    merge_params(params, snippet)
+    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    added = [d for d in params["benchmark"]["detectors"] if d not in before]
+    assert added, "the README's params snippet adds no detector to benchmark.detectors"
+
+    commands = [c for script in blocks(section, "bash") for c in shell_commands(script)]
+    assert any("check_detector" in c for c in commands), "the README runs no contract check"
+    for command in commands:
+        output = sh(repo, command)
+        words = argv(command)
+        if words[:2] == ["dvc", "repro"]:
+            targets = [w for w in words[2:] if not w.startswith("-")]
+            missing = set(targets) - set(stages_ran(output))
+            assert not missing, f"`{command}` did not run {sorted(missing)}:\n{output}"
+    return added
+
+
+def check_inline_commands(repo: Path, markdown: str, sections: dict[str, Section]) -> None:
+    """`oodrl list` prints every component the README lists; check-params passes; `oodrl show`
+    prints every benchmarked detector, the README's new one included."""
+    commands = inline_oodrl_commands(markdown)
+    for name in INLINE_COMMANDS:
+        assert name in commands, f"the README names no `oodrl {name}` command"
+    listed = sh(repo, commands["list"])
+    components = re.findall(r"`([a-z][a-z0-9_]+)`", sections[COMPONENTS].prose)
+    assert components, "the Components section lists no component names"
+    for component in components:
+        assert component in listed, f"`oodrl list` does not print {component}"
+    assert ": ok (" in sh(repo, commands["check-params"])
+    shown = sh(repo, commands["show"])
+    for detector in yaml.safe_load((repo / "params.yaml").read_text())["benchmark"]["detectors"]:
+        assert detector in shown, f"`{commands['show']}` does not show {detector}"
+
+
+def check_figures_and_plots(repo: Path, section: Section) -> None:
+    """The figures the README names exist; its word on the plots page's network use is true."""
+    for figure in re.findall(r"`(?:reports/figures/)?([a-z_]+\.png)`", section.prose):
+        assert (repo / "reports" / "figures" / figure).is_file(), figure
+    output = sh(repo, "dvc plots show")
+    page = re.search(r"(\S+\.html)", output)
+    assert page, f"`dvc plots show` named no page:\n{output}"
+    html = Path(page.group(1).removeprefix("file://")).read_text()
+    remote = bool(re.search(r"<script[^>]+src=\"https?://", html))
+    says_network = "network" in section.prose
+    assert remote == says_network, (
+        f"the README says the plots page {'needs' if says_network else 'does not need'} a "
+        f"network; the page {'loads' if remote else 'does not load'} remote scripts"
+    )
+
+
+def change_knobs(repo: Path, section: Section) -> None:
+    """Each `dvc exp run -S` changes a scored output (a detector knob: only that detector's
+    stages run); `dvc metrics diff` then reports a difference from the committed run."""
+    for script in blocks(section, "bash"):
+        for command in shell_commands(script):
+            before = lock_hashes(repo)
+            output = sh(repo, command)
+            after = lock_hashes(repo)
+            knobs = set_params(command)
+            if knobs:
+                changed = [p for p in after if p.startswith("scores/") and after[p] != before[p]]
+                assert changed, f"`{command}` changed no scores:\n{output}"
+                check_detector_knob(command, knobs, stages_ran(output))
+            elif argv(command)[:3] == ["dvc", "metrics", "diff"]:
+                assert "reports/metrics.json" in output, f"`{command}` shows no change:\n{output}"
+
+
+def check_detector_knob(command: str, knobs: dict[str, str], ran: list[str]) -> None:
+    for key in knobs:
+        if not key.startswith("detectors."):
+            continue
+        detector = key.split(".")[1]
+        assert f"fit@{detector}" in ran, f"`{command}` did not refit {detector}: {ran}"
+        # Per-item stages: fit@d, score_clean@d, score@d-injector, collect_*@injector.
+        others = [s for s in ran if "@" in s and not re.search(rf"@{detector}(-|$)", s)]
+        assert not others, f"`{command}` re-ran stages of other components: {others}"
+
+
+# -- tests ---------------------------------------------------------------------------------------
+def test_readme_has_the_blocks_this_test_follows():
+    sections = parse_sections(README.read_text())
+    add = sections[ADD_DETECTOR]
+    assert len(blocks(add, "python")) == 1 and len(blocks(add, "yaml")) == 1
+    assert blocks(add, "bash"), "Add a detector shows no commands"
+    assert readme_knobs(sections), "Change a knob shows no `dvc exp run -S` command"
+    assert set(INLINE_COMMANDS) <= set(inline_oodrl_commands(README.read_text()))
+
+
+def test_shell_commands_keep_a_quoted_argument_across_lines():
+    script = 'python -c "\nprint(1)\n"\n# a comment\ndvc repro a b  # why\n'
+    assert shell_commands(script) == ['python -c "\nprint(1)\n"', "dvc repro a b  # why"]
+
+
+def test_merge_params_appends_to_an_elided_list():
+    params = {"benchmark": {"detectors": ["a", "b"]}, "detectors": {"a": {"x": 1}}}
+    merge_params(params, {"benchmark": {"detectors": ["...", "c"]}, "detectors": {"c": {}}})
+    assert params == {
+        "benchmark": {"detectors": ["a", "b", "c"]},
+        "detectors": {"a": {"x": 1}, "c": {}},
+    }
+
+
+def test_kde_bandwidth_knob_differs_from_the_default_runs_bandwidth(repo_root):
+    """A bandwidth knob equal to what Scott's rule gives on the default run changes nothing."""
+    from oodrl.config import load_params
+    from oodrl.detectors.kde import bandwidth_of
+    from oodrl.envs import ENVIRONMENTS
+
+    knobs = readme_knobs(parse_sections(README.read_text()))
+    values = [float(v) for k, v in knobs.items() if k == "detectors.kde_density.bandwidth"]
+    if not values:
+        pytest.skip("the README turns no kde_density bandwidth knob")
+    params = load_params(repo_root / "params.yaml")
+    kde = params.detectors["kde_density"]
+    assert kde.get("features", "state") == "state"
+    fit_rows = (params.data.n_id - params.data.n_calibration) * params.env.T
+    n = min(kde.get("max_reference", 4096), fit_rows)
+    default = bandwidth_of(
+        kde.get("bandwidth", "scott"), n, ENVIRONMENTS.get(params.env.id).state_dim
+    )
+    assert values[0] != pytest.approx(default), f"bandwidth {values[0]} is the default run's own"
+
+
+@pytest.mark.slow
+def test_following_the_readme_in_a_fresh_project(tmp_path, repo_root):
+    if not (repo_root / "models" / "policy.pt").is_file():
+        pytest.skip("models/policy.pt is not committed yet")
+    markdown = README.read_text()
+    sections = parse_sections(markdown)
+    repo = copy_project(
+        repo_root, tmp_path / "project", tiny_params(repo_root, readme_knobs(sections))
+    )
+    require_committed_policy(repo)
+
+    added = add_detector(repo, sections[ADD_DETECTOR])
+    results = yaml.safe_load((repo / "reports" / "results.yaml").read_text())
+    for detector in added:
+        assert any(r["detector"] == detector for r in results["records"]), detector
+    assert run(repo, "dvc", "status", "-q", check=False).returncode == 0, (
+        "the README's repro left stages pending"
+    )
+    check_inline_commands(repo, markdown, sections)
+    check_figures_and_plots(repo, sections[READING])
+
+    # A fresh clone's HEAD holds a complete run: the baseline `dvc metrics diff` compares with.
+    run(repo, "git", "add", "-A")
+    run(repo, "git", "commit", "-q", "-m", "the README's detector added and run")
+    change_knobs(repo, sections[CHANGE_KNOB])
