@@ -123,6 +123,46 @@ def test_bad_params_are_one_line_errors(default_params, case, edit, message):
     assert "\n" not in text
     assert text.startswith("params.yaml: ")
     assert message in text
+    assert len(text) < 400, "a one-line error never quotes a whole section"
+
+
+def test_cross_section_error_does_not_quote_the_params(default_params):
+    """A check across sections used to append pydantic's input: all of params (3,193 chars)."""
+    default_params["env"]["onset"] = 600
+    with pytest.raises(ConfigError) as info:
+        parse_params(default_params, "params.yaml")
+    assert str(info.value) == "params.yaml: env.onset: must be in [1, T=500); got 600"
+
+
+def test_missing_section_does_not_quote_the_params(default_params):
+    del default_params["benchmark"]
+    with pytest.raises(ConfigError) as info:
+        parse_params(default_params, "params.yaml")
+    assert str(info.value) == "params.yaml: benchmark: Field required"
+
+
+@pytest.mark.parametrize(
+    ("key", "typo", "meant"),
+    [("detectors", "kde_densty", "kde_density"), ("injectors", "stuck_actuater", "stuck_actuator")],
+)
+def test_misspelt_benchmark_name_suggests_the_closest(default_params, key, typo, meant):
+    names = default_params["benchmark"][key]
+    names[names.index(meant)] = typo
+    with pytest.raises(ConfigError) as info:
+        parse_params(default_params, "params.yaml")
+    assert f"benchmark.{key}: '{typo}' has no parameter block" in str(info.value)
+    assert f"Did you mean '{meant}'?" in str(info.value)
+
+
+def test_too_short_T_with_default_onset_blames_T(default_params):
+    """onset: null means floor(T/3); with T = 2 that is 0, and T is the key to change."""
+    default_params["env"].update(T=2, onset=None)
+    with pytest.raises(ConfigError) as info:
+        parse_params(default_params, "params.yaml")
+    assert str(info.value).startswith("params.yaml: env.T: must be at least 3")
+    assert "got 2" in str(info.value)
+    default_params["env"]["onset"] = 1
+    assert parse_params(default_params).env.resolved_onset == 1
 
 
 def test_check_params_cli_exit_codes(tmp_path, default_params):

@@ -9,6 +9,7 @@ allowed; the CLI turns it into exit code 2 before anything is written.
 from __future__ import annotations
 
 import dataclasses
+import difflib
 from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
@@ -102,6 +103,12 @@ class Params(_Section):
     @model_validator(mode="after")
     def _protocol_ranges(self) -> Params:
         T, onset = self.env.T, self.env.resolved_onset
+        if self.env.onset is None and onset < 1:
+            # The default onset floor(T/3) is derived from T: T is the key to change.
+            raise ValueError(
+                f"env.T: must be at least 3 when env.onset is null (the default onset "
+                f"floor(T/3) must be at least 1); got {T}"
+            )
         if not 1 <= onset < T:
             raise ValueError(f"env.onset: must be in [1, T={T}); got {onset}")
         offset = self.anomaly.offset
@@ -126,8 +133,9 @@ class Params(_Section):
             if missing:
                 section = "detectors" if key == "detectors" else "anomaly.injectors"
                 raise ValueError(
-                    f"benchmark.{key}: {missing[0]!r} has no parameter block under {section} "
-                    f"(blocks: {', '.join(sorted(blocks)) or 'none'})"
+                    f"benchmark.{key}: {missing[0]!r} has no parameter block under {section}."
+                    f"{did_you_mean(missing[0], [*blocks, *_registered(key)])} "
+                    f"Blocks: {', '.join(sorted(blocks)) or 'none'}."
                 )
         return self
 
@@ -194,6 +202,23 @@ class Params(_Section):
             raise ConfigError(f"policy.train: {error}") from None
 
 
+def did_you_mean(name: str, candidates: list[str]) -> str:
+    """' Did you mean 'x'?' for the closest candidate, or '' when none is close."""
+    close = difflib.get_close_matches(name, sorted(set(candidates)), n=1)
+    return f" Did you mean '{close[0]}'?" if close else ""
+
+
+def _registered(key: str) -> list[str]:
+    """Names registered for `detectors` or `injectors` (built-ins and entry points)."""
+    if key == "detectors":
+        from oodrl.detectors import DETECTORS
+
+        return DETECTORS.names()
+    from oodrl.injectors import INJECTORS
+
+    return INJECTORS.names()
+
+
 def _component_class(registry, section: str, name: str, block: dict[str, Any]) -> type:
     path = block.get("class")
     try:
@@ -210,15 +235,25 @@ def _build(cls: type, key: str, block: dict[str, Any]):
         raise ConfigError(f"{key}: {error}") from None
 
 
+#: Longest offending value quoted in an error; a section's whole mapping is never quoted.
+_MAX_QUOTED = 60
+
+
 def _format_pydantic(error: ValidationError) -> str:
     first = error.errors()[0]
-    loc = ".".join(str(p) for p in first["loc"]) or "params"
     message = first["msg"].removeprefix("Value error, ")
+    if not first["loc"]:
+        # A check across sections: its message names the key; its input is all of params.
+        return message
+    loc = ".".join(str(p) for p in first["loc"])
     if first["type"] == "extra_forbidden":
         return f"{loc}: unknown key (not a parameter of this section)"
-    if loc != "params" and message.startswith(loc):
+    if message.startswith(loc):
         return message
-    return f"{loc}: {message} (got {first.get('input')!r})" if "input" in first else message
+    quoted = repr(first.get("input"))
+    if first["type"] == "missing" or len(quoted) > _MAX_QUOTED:
+        return f"{loc}: {message}"
+    return f"{loc}: {message} (got {quoted})"
 
 
 def parse_params(data: Any, source: str = "params") -> Params:
