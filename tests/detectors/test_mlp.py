@@ -31,7 +31,7 @@ def torch_loss(
     x = torch.as_tensor(inputs, dtype=torch.float64)
     for index in range(n_layers):
         x = x @ params[index].transpose(-1, -2) + params[n_layers + index]
-        if index < n_layers - 1:
+        if weights.relu[index]:
             x = torch.relu(x)
     y = torch.as_tensor(targets, dtype=torch.float64)
     if loss == "mse":
@@ -45,11 +45,15 @@ def torch_loss(
     return value, params
 
 
-@pytest.mark.parametrize("loss", ["mse", "gaussian_nll"])
-def test_gradients_match_torch_autograd(loss):
+@pytest.mark.parametrize(
+    ("loss", "linear_layers"),
+    [("mse", ()), ("gaussian_nll", ()), ("mse", (1,))],
+    ids=["mse", "gaussian_nll", "linear-bottleneck"],
+)
+def test_gradients_match_torch_autograd(loss, linear_layers):
     rng = np.random.default_rng(0)
     n_out = 4 if loss == "mse" else 8
-    weights = mlp.init_weights(3, (5, 16, 16, n_out), rng)
+    weights = mlp.init_weights(3, (5, 16, 2, 16, n_out), rng, linear_layers)
     inputs = rng.standard_normal((3, 40, 5)).astype(np.float32)
     # Targets far from the initial outputs push some log-variances into the soft bounds.
     targets = (3 * rng.standard_normal((3, 40, 4))).astype(np.float32)
@@ -100,6 +104,12 @@ def test_adam_matches_torch():
     np.testing.assert_allclose(param, reference.detach().numpy(), rtol=1e-5, atol=1e-6)
 
 
+def test_relu_follows_every_hidden_layer_but_the_linear_ones():
+    rng = np.random.default_rng(0)
+    assert mlp.init_weights(1, (4, 8, 8, 2), rng).relu == (True, True, False)
+    assert mlp.init_weights(1, (4, 8, 2, 8, 4), rng, (1,)).relu == (True, False, True, False)
+
+
 def test_initial_weights_follow_torch_linear_default():
     weights = mlp.init_weights(4, (9, 25, 3), np.random.default_rng(0))
     assert [w.shape for w in weights.weights] == [(4, 25, 9), (4, 3, 25)]
@@ -126,7 +136,9 @@ def test_members_are_independent():
     weights = mlp.init_weights(3, (4, 8, 8, 2), np.random.default_rng(0))
     x = np.random.default_rng(1).standard_normal((5, 4))
     member = mlp.EnsembleWeights(
-        tuple(w[1:2] for w in weights.weights), tuple(b[1:2] for b in weights.biases)
+        tuple(w[1:2] for w in weights.weights),
+        tuple(b[1:2] for b in weights.biases),
+        weights.relu,
     )
     np.testing.assert_array_equal(member.predict(x)[0], weights.predict(x)[1])
 

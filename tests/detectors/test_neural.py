@@ -43,11 +43,10 @@ SMALL: dict[str, dict] = {
 
 
 def torch_forward(weights: EnsembleWeights, x: torch.Tensor) -> torch.Tensor:
-    """The ensemble's float32 forward pass in torch on (M, B, in) inputs: ReLU between layers."""
-    last = len(weights.weights) - 1
-    for index, (weight, bias) in enumerate(zip(weights.weights, weights.biases, strict=True)):
+    """The ensemble's float32 forward pass in torch on (M, B, in) inputs."""
+    for weight, bias, relu in zip(weights.weights, weights.biases, weights.relu, strict=True):
         x = torch.baddbmm(torch.from_numpy(bias), x, torch.from_numpy(weight).transpose(1, 2))
-        if index < last:
+        if relu:
             x = torch.relu(x)
     return x
 

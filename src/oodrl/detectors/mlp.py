@@ -43,11 +43,12 @@ class EnsembleWeights:
     """The weights of an M-member MLP ensemble as float32 numpy arrays (what a detector stores).
 
     Layer l has `weights[l]` of shape (M, out, in) and `biases[l]` of shape (M, 1, out); ReLU
-    between layers.
+    follows layer l where `relu[l]` (every hidden layer but a linear bottleneck, never the last).
     """
 
     weights: tuple[np.ndarray, ...]
     biases: tuple[np.ndarray, ...]
+    relu: tuple[bool, ...]
 
     @property
     def n_members(self) -> int:
@@ -60,10 +61,9 @@ class EnsembleWeights:
         """
         x = np.asarray(inputs, dtype=np.float32)
         layers = [x]
-        last = len(self.weights) - 1
-        for index, (weight, bias) in enumerate(zip(self.weights, self.biases, strict=True)):
+        for weight, bias, relu in zip(self.weights, self.biases, self.relu, strict=True):
             x = numerics.linear(x, weight, bias)
-            if index < last:
+            if relu:
                 x = numerics.relu(x)
             layers.append(x)
         return layers
@@ -73,15 +73,25 @@ class EnsembleWeights:
         return self.activations(inputs)[-1]
 
 
-def init_weights(n_members: int, sizes: Sequence[int], rng: np.random.Generator) -> EnsembleWeights:
+def init_weights(
+    n_members: int,
+    sizes: Sequence[int],
+    rng: np.random.Generator,
+    linear_layers: Sequence[int] = (),
+) -> EnsembleWeights:
     """Layers of `sizes` (input, hidden…, output) drawn as torch's nn.Linear default does:
-    weights and biases U(−1/√fan_in, 1/√fan_in), every member independently."""
+    weights and biases U(−1/√fan_in, 1/√fan_in), every member independently.
+
+    ReLU follows every hidden layer except those in `linear_layers` (e.g. a bottleneck).
+    """
+    n_layers = len(sizes) - 1
+    relu = tuple(index < n_layers - 1 and index not in linear_layers for index in range(n_layers))
     weights, biases = [], []
     for n_in, n_out in zip(sizes[:-1], sizes[1:], strict=True):
         bound = 1.0 / math.sqrt(n_in)
         weights.append(rng.uniform(-bound, bound, (n_members, n_out, n_in)).astype(np.float32))
         biases.append(rng.uniform(-bound, bound, (n_members, 1, n_out)).astype(np.float32))
-    return EnsembleWeights(tuple(weights), tuple(biases))
+    return EnsembleWeights(tuple(weights), tuple(biases), relu)
 
 
 def _softplus_slope(x: np.ndarray) -> np.ndarray:
@@ -133,7 +143,8 @@ def gaussian_nll(outputs: np.ndarray, targets: np.ndarray) -> tuple[float, np.nd
 def gradients(
     weights: EnsembleWeights, inputs: np.ndarray, targets: np.ndarray, loss: Loss
 ) -> tuple[float, EnsembleWeights]:
-    """The loss on (M, B, in) inputs and its gradient with respect to every weight and bias."""
+    """The loss on (M, B, in) inputs and its gradient with respect to every weight and bias
+    (as an `EnsembleWeights` without `relu`)."""
     layers = weights.activations(inputs)
     value, grad = loss(layers[-1], targets)
     ones = np.ones((1, grad.shape[-2]), dtype=np.float32)
@@ -146,9 +157,11 @@ def gradients(
         grad_biases.append(numerics.linear(ones, grad_t))
         if index > 0:
             grad = numerics.linear(grad, np.swapaxes(weights.weights[index], -1, -2))
-            # ReLU passes the gradient where its input was positive (its output is then > 0).
-            grad = np.where(layers[index] > 0, grad, np.float32(0))
-    return value, EnsembleWeights(tuple(reversed(grad_weights)), tuple(reversed(grad_biases)))
+            if weights.relu[index - 1]:
+                # ReLU passes the gradient where its input was positive (its output is > 0).
+                grad = np.where(layers[index] > 0, grad, np.float32(0))
+    grads = EnsembleWeights(tuple(reversed(grad_weights)), tuple(reversed(grad_biases)), ())
+    return value, grads
 
 
 class Adam:
@@ -214,7 +227,7 @@ def train(
     """
     x = np.asarray(inputs, dtype=np.float32)
     y = np.asarray(targets, dtype=np.float32)
-    params = [p.copy() for p in (*weights.weights, *weights.biases)]
+    params = tuple(p.copy() for p in (*weights.weights, *weights.biases))
     n_layers = len(weights.weights)
     optimiser = Adam(params, settings.lr)
     epoch_losses = []
@@ -223,9 +236,9 @@ def train(
         batch_losses = []
         for start in range(0, order.shape[1], settings.batch_size):
             batch = order[:, start : start + settings.batch_size]
-            current = EnsembleWeights(tuple(params[:n_layers]), tuple(params[n_layers:]))
+            current = EnsembleWeights(params[:n_layers], params[n_layers:], weights.relu)
             value, grads = gradients(current, x[batch], y[batch], loss)
             optimiser.step(params, [*grads.weights, *grads.biases])
             batch_losses.append(value)
         epoch_losses.append(math.fsum(batch_losses) / len(batch_losses))
-    return EnsembleWeights(tuple(params[:n_layers]), tuple(params[n_layers:])), epoch_losses
+    return EnsembleWeights(params[:n_layers], params[n_layers:], weights.relu), epoch_losses

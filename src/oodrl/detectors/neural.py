@@ -79,13 +79,14 @@ class NeuralDetector(BaseDetector):
         loss: str,
         bootstrap: bool,
         hidden_sizes: Sequence[int],
+        linear_layers: Sequence[int] = (),
     ) -> None:
         """Fit `n_members` MLPs (inputs → `n_outputs`, `hidden_sizes` between) on `targets` with
-        `loss`, each on a bootstrap resample or on all rows; sets `weights_` and
-        `training_losses_` (the mean minibatch loss of each epoch)."""
+        `loss`, each on a bootstrap resample or on all rows (no ReLU after the hidden layers in
+        `linear_layers`); sets `weights_` and `training_losses_` (mean minibatch loss per epoch)."""
         rng = np.random.default_rng(self.seed)
         sizes = (inputs.shape[1], *hidden_sizes, n_outputs)
-        initial = mlp.init_weights(n_members, sizes, rng)
+        initial = mlp.init_weights(n_members, sizes, rng, linear_layers)
         self.weights_, self.training_losses_ = mlp.train(
             initial,
             inputs,
