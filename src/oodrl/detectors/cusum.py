@@ -1,16 +1,21 @@
-"""`cusum`: one-sided CUSUM of a one-step transition residual (SPEC §5).
+"""`cusum`: one-sided CUSUM of a scalar residual (SPEC §5).
 
     g_t = max(0, g_{t−1} + e_t − ν − k),   g_{−1} = 0,   z_t = g_t.
 
-e_t is the residual of a cheap linear dynamics model: ridge regression of the standardised
-increment s'_t − s_t on the standardised (s_t, one-hot a_t), fitted on the fit set. With r_t the
-residual vector and σ its per-coordinate standard deviation on the fit set,
+The residual e_t (`residual`):
 
-    e_t = (1/d_s) Σ_i (r_{t,i} / σ_i)²,
+- ``"transition"`` (default): the residual of a cheap linear dynamics model, ridge regression of
+  the standardised increment s'_t − s_t on the standardised (s_t, one-hot a_t), fitted on the
+  fit set. With r_t the residual vector and σ its per-coordinate standard deviation on the fit
+  set, e_t = (1/d_s) Σ_i (r_{t,i} / σ_i)². It uses s'_t = s_{t+1}: latency 1.
+- ``"state"``: the standardised distance of s_t from the fit-set mean, e_t = (1/d_s) Σ_i
+  ((s_{t,i} − μ_i) / σ_i)², μ and σ the fit-set mean and standard deviation per coordinate
+  (the CUSUM of a state-outlier score, as in the reference paper). Latency 0.
 
-so e_t ≈ 1 on in-distribution data. ν is the fit-set mean of e_t and the slack k is
+Both are ≈ 1 on average on in-distribution data. ν is the fit-set mean of e_t and the slack k is
 `slack` × (fit-set standard deviation of e_t): in-distribution the statistic drifts down by k per
-step and stays near 0; a sustained increase of the residual by more than k accumulates.
+step and stays near 0; a sustained increase of the residual by more than k accumulates. Which
+residual is accumulated decides what the detector sees: docs/cusum.md compares the two.
 
 Episode resets: by default g is *not* reset at `dones`. The residual uses (s_t, a_t, s'_t), and
 s'_t is the terminal observation at an episode end, so the reset jump never enters e_t; and a
@@ -37,7 +42,9 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.validation import Interval, IsType
+from oodrl.validation import Interval, IsType, Options
+
+RESIDUALS = ("transition", "state")
 
 
 @dataclass(frozen=True)
@@ -68,6 +75,57 @@ class LinearResidualModel:
         return np.mean(scaled**2, axis=1)
 
 
+@dataclass(frozen=True)
+class TransitionResidual:
+    """e_t of the linear dynamics model on the standardised (s_t, a_t) → s'_t − s_t."""
+
+    action_encoding: ActionEncoding
+    inputs: Standardizer
+    targets: Standardizer
+    model: LinearResidualModel
+
+    @classmethod
+    def fit(cls, trajectories: Sequence[Trajectory], ridge: float) -> TransitionResidual:
+        encoding = ActionEncoding.fit(trajectories)
+        inputs = stacked(trajectories, lambda t: _state_action(t, encoding))
+        deltas = stacked(trajectories, increments)
+        input_standardizer, target_standardizer = Standardizer.fit(inputs), Standardizer.fit(deltas)
+        model = LinearResidualModel.fit(
+            input_standardizer.transform(inputs), target_standardizer.transform(deltas), ridge
+        )
+        return cls(encoding, input_standardizer, target_standardizer, model)
+
+    def __call__(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
+        x = self.inputs.transform(
+            stacked(trajectories, lambda t: _state_action(t, self.action_encoding))
+        )
+        y = self.targets.transform(stacked(trajectories, increments))
+        return self.model.residual(x, y)
+
+
+def _state_action(trajectory: Trajectory, encoding: ActionEncoding) -> np.ndarray:
+    return trajectory_features(trajectory, "state_action", encoding)
+
+
+@dataclass(frozen=True)
+class StateResidual:
+    """e_t = mean over coordinates of the squared standardised state (s_t − μ) / σ."""
+
+    states: Standardizer
+
+    @classmethod
+    def fit(cls, trajectories: Sequence[Trajectory]) -> StateResidual:
+        return cls(Standardizer.fit(stacked(trajectories, _states)))
+
+    def __call__(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
+        z = self.states.transform(stacked(trajectories, _states))
+        return np.mean(z**2, axis=1)
+
+
+def _states(trajectory: Trajectory) -> np.ndarray:
+    return trajectory.states.astype(np.float64)
+
+
 def cusum(drift: np.ndarray, restarts: np.ndarray) -> np.ndarray:
     """g_t = max(0, g_{t−1} + drift_t), restarting from g = 0 where `restarts` is True.
 
@@ -84,13 +142,16 @@ def cusum(drift: np.ndarray, restarts: np.ndarray) -> np.ndarray:
 
 
 class Cusum(BaseDetector):
-    """One-sided CUSUM of a standardised one-step transition residual.
+    """One-sided CUSUM of a standardised residual: a transition residual or a state distance.
 
     Parameters
     ----------
+    residual : "transition" | "state", default "transition"
+        What is accumulated: the one-step transition residual of a linear dynamics model, or
+        the standardised distance of the state from its fit-set mean.
     ridge : float > 0, default 1e-3
         λ of the ridge regression of the increment on (state, one-hot action), in units of the
-        standardised inputs' variance.
+        standardised inputs' variance (``residual="transition"`` only).
     slack : float >= 0, default 0.5
         k in units of the fit-set standard deviation of the residual e_t.
     reset_on_done : bool, default False
@@ -100,6 +161,7 @@ class Cusum(BaseDetector):
     name: ClassVar[str] = "cusum"
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
+        "residual": [Options(RESIDUALS)],
         "ridge": [Interval(float, 0, None, closed="neither")],
         "slack": [Interval(float, 0, None)],
         "reset_on_done": [IsType(bool)],
@@ -108,6 +170,7 @@ class Cusum(BaseDetector):
     def __init__(
         self,
         *,
+        residual: str = "transition",
         ridge: float = 1e-3,
         slack: float = 0.5,
         reset_on_done: bool = False,
@@ -118,28 +181,25 @@ class Cusum(BaseDetector):
         super().__init__(
             threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
         )
+        self.residual = residual
         self.ridge = ridge
         self.slack = slack
         self.reset_on_done = reset_on_done
 
-    def _inputs(self, trajectory: Trajectory) -> np.ndarray:
-        return trajectory_features(trajectory, "state_action", self.action_encoding_)
+    @property
+    def latency(self) -> int:
+        # The transition residual uses s'_t = s_{t+1}: known one step after t.
+        return int(self.residual == "transition")
 
     def _residuals(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
-        x = self.input_standardizer_.transform(stacked(trajectories, self._inputs))
-        y = self.target_standardizer_.transform(stacked(trajectories, increments))
-        return self.model_.residual(x, y)
+        return self.residual_model_(trajectories)
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
-        self.action_encoding_ = ActionEncoding.fit(trajectories)
-        inputs = stacked(trajectories, self._inputs)
-        deltas = stacked(trajectories, increments)
-        self.input_standardizer_ = Standardizer.fit(inputs)
-        self.target_standardizer_ = Standardizer.fit(deltas)
-        x = self.input_standardizer_.transform(inputs)
-        y = self.target_standardizer_.transform(deltas)
-        self.model_ = LinearResidualModel.fit(x, y, self.ridge)
-        residuals = self.model_.residual(x, y)
+        if self.residual == "transition":
+            self.residual_model_ = TransitionResidual.fit(trajectories, self.ridge)
+        else:
+            self.residual_model_ = StateResidual.fit(trajectories)
+        residuals = self._residuals(trajectories)
         self.residual_mean_ = float(residuals.mean())
         self.slack_ = self.slack * float(residuals.std())
 
