@@ -107,6 +107,26 @@ def test_alarm_metrics_use_the_threshold_and_window():
     assert result["clean_alarm_rate"][0] == 0.0
 
 
+def test_detection_delay_adds_the_detector_latency():
+    perturbed = np.zeros((1, 10))
+    perturbed[0, [4, 7]] = 1.0
+    labels = np.zeros((1, 10), bool)
+    labels[0, 5:] = True
+    clean = np.zeros((1, 10))
+    # The alarm at t = 4 is before t* = 5 without look-ahead; with latency 1 it is raised at 5.
+    plain = episode_metrics(perturbed, clean, labels, 1.0, 5, None, SETTINGS)
+    ahead = episode_metrics(perturbed, clean, labels, 1.0, 5, None, SETTINGS, latency=1)
+    assert (plain["detection_delay"][0], ahead["detection_delay"][0]) == (2.0, 0.0)
+    null = null_episode_metrics(perturbed, labels, 1.0, 5, None, SETTINGS, latency=3)
+    assert null["detection_delay"][0] == 2.0  # the alarm at 4 is raised at 7
+    # Only the delay depends on the latency.
+    for name in plain:
+        if name != "detection_delay":
+            np.testing.assert_array_equal(plain[name], ahead[name])
+    with pytest.raises(ContractError, match="latency"):
+        episode_metrics(perturbed, clean, labels, 1.0, 5, None, SETTINGS, latency=-1)
+
+
 def test_null_episode_metrics():
     _, clean, labels = episodes(0.0)
     result = null_episode_metrics(clean, labels, 1.5, ONSET, None, SETTINGS, "kde_density")

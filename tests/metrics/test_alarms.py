@@ -2,6 +2,9 @@
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 from sklearn.metrics import f1_score, precision_score, recall_score
 
 from oodrl.errors import ContractError
@@ -51,6 +54,29 @@ def test_detection_delay_hand_worked():
     assert detection_delay(bools("...#......"), onset=3)[0] == 0.0
     assert detection_delay(bools("##........"), onset=3)[0] == 7.0  # none after t*: T − t*
     assert detection_delay(bools(".........."), onset=0)[0] == 10.0
+
+
+def test_detection_delay_counts_an_alarm_when_it_could_have_been_raised():
+    # A score that looks 2 steps ahead: its alarm at t is raised at t + 2.
+    assert detection_delay(bools("#....#...."), onset=3, latency=2)[0] == 4.0
+    # An alarm on the score of t* − 2 is raised at t*: delay 0, not "before the onset".
+    assert detection_delay(bools(".#........"), onset=3, latency=2)[0] == 0.0
+    assert detection_delay(bools("#........."), onset=3, latency=2)[0] == 7.0
+    # A raise time beyond the recorded stream counts as no alarm: T − t*.
+    assert detection_delay(bools("........#."), onset=3, latency=5)[0] == 7.0
+    assert detection_delay(bools("...#......"), onset=3, latency=0)[0] == 0.0
+    with pytest.raises(ContractError, match="latency"):
+        detection_delay(bools("...#......"), onset=3, latency=-1)
+
+
+@given(arrays(np.bool_, (3, 30)), st.integers(0, 29), st.integers(0, 6))
+def test_detection_delay_is_the_first_raise_time_of_the_alarms(alarms, onset, latency):
+    delays = detection_delay(alarms, onset, latency)
+    for row, delay in zip(alarms, delays, strict=True):
+        raised = [t + latency for t in np.flatnonzero(row) if onset <= t + latency < row.size]
+        assert delay == (min(raised) if raised else row.size) - onset
+        # Latency can only postpone a detection, never advance it past the look-ahead-free one.
+        assert delay <= detection_delay(row, onset, 0)[0] + latency
 
 
 def test_segment_precision_recall_hand_worked():

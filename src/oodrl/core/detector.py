@@ -98,6 +98,17 @@ class BaseDetector(Component):
     def detector_name(self) -> str:
         return self.name or type(self).__name__
 
+    @property
+    def latency(self) -> int:
+        """How many steps of the future the score at t uses: z_t is known at step t + latency.
+
+        0 when z_t uses only s_≤t and a_t (the action is chosen at t); 1 when it uses s_{t+1}
+        (`next_states[t]`: transition features or residuals); H for an H-step look-ahead.
+        Subclasses override it from their params. A detection delay counts an alarm at t as
+        raised at t + latency, so that look-ahead cannot make a detector look early (SPEC §6).
+        """
+        return 0
+
     def fit(self, trajectories: Sequence[Trajectory]) -> BaseDetector:
         cls = type(self)
         if cls._score is BaseDetector._score and cls._score_many is BaseDetector._score_many:

@@ -131,6 +131,11 @@ class LyapunovDivergence(BaseDetector):
         self.epsilon = epsilon
         self.max_reference = max_reference
 
+    @property
+    def latency(self) -> int:
+        # z_t follows the embedding H steps ahead: it is known at t + H.
+        return self.horizon
+
     def _embed(self, trajectories: Sequence[Trajectory]) -> EpisodeEmbedding:
         return episode_embedding(trajectories, self.standardizer_, self.embedding_dim, self.lag)
 

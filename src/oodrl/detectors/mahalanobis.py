@@ -61,6 +61,11 @@ class MahalanobisDistance(BaseDetector):
         self.features = features
         self.ridge = ridge
 
+    @property
+    def latency(self) -> int:
+        # "transition" features hold the increment s_{t+1} − s_t: known one step after t.
+        return int(self.features == "transition")
+
     def _features(self, trajectory: Trajectory) -> np.ndarray:
         return trajectory_features(trajectory, self.features, self.action_encoding_)
 

@@ -90,6 +90,11 @@ class Pedm(TransitionEnsemble):
         self.batch_size = batch_size
         self.lr = lr
 
+    @property
+    def latency(self) -> int:
+        # z_t compares the observed s_{t+1} with the predictions: known one step after t.
+        return 1
+
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
         # Two outputs per coordinate: the Gaussian mean and log-variance of each increment.
         self.target_standardizer_ = self._fit_ensemble(

@@ -63,7 +63,8 @@ class MetricSettings:
 @dataclass(frozen=True, eq=False)
 class EpisodeBatch:
     """N paired episodes: perturbed and matched clean scores (N, T), labels (N, T) bool,
-    the detector's alarm threshold θ and the anomaly window [onset, offset)."""
+    the detector's alarm threshold θ, the anomaly window [onset, offset), and the detector's
+    latency (a score of step t is known at t + latency; see `BaseDetector.latency`)."""
 
     perturbed: np.ndarray
     clean: np.ndarray
@@ -71,6 +72,7 @@ class EpisodeBatch:
     threshold: float
     onset: int
     offset: int | None = None
+    latency: int = 0
 
     @property
     def alarms(self) -> np.ndarray:
@@ -181,8 +183,8 @@ CLEAN_ALARM_RATE = Metric(
 )
 DETECTION_DELAY = Metric(
     False,
-    lambda b, s: detection_delay(b.alarms, b.onset),
-    "first alarm at t ≥ t*, minus t*; T − t* if none",
+    lambda b, s: detection_delay(b.alarms, b.onset, b.latency),
+    "first raise time t + latency ≥ t* of an alarm at t, minus t*; T − t* if none",
 )
 SEGMENT_PRECISION = Metric(
     True,
@@ -223,6 +225,7 @@ def _batch(
     threshold: float,
     onset: int,
     offset: int | None,
+    latency: int,
 ) -> EpisodeBatch:
     labels = np.asarray(labels)
     if labels.dtype != bool or labels.shape != perturbed.shape or clean.shape != perturbed.shape:
@@ -238,7 +241,11 @@ def _batch(
     end = T if offset is None else offset
     if not 0 <= onset < end <= T:
         raise ContractError(f"Need 0 <= onset < offset <= T={T}; got {onset}, {offset}.")
-    return EpisodeBatch(perturbed, clean, labels, float(threshold), int(onset), offset)
+    if latency < 0:
+        raise ContractError(f"A detector's latency must be >= 0 steps; got {latency}.")
+    return EpisodeBatch(
+        perturbed, clean, labels, float(threshold), int(onset), offset, int(latency)
+    )
 
 
 def _compute(
@@ -265,13 +272,15 @@ def episode_metrics(
     offset: int | None,
     settings: MetricSettings,
     detector: str = "",
+    latency: int = 0,
 ) -> dict[str, np.ndarray]:
     """Every registered metric per episode: name -> (N,) values, names sorted.
 
     perturbed, clean: (N, T) scores of N paired episodes (row i of both is evaluation episode
     i); labels: (N, T) bool; threshold: the detector's calibrated θ; the anomaly window is
-    [onset, offset) with offset None = T. NaN or infinite scores raise `DetectorError` naming
-    `detector` and the episode.
+    [onset, offset) with offset None = T; latency: the detector's look-ahead in steps, which
+    the detection delay adds to each alarm. NaN or infinite scores raise `DetectorError`
+    naming `detector` and the episode.
     """
     batch = _batch(
         _scores(perturbed, "perturbed", detector),
@@ -280,6 +289,7 @@ def episode_metrics(
         threshold,
         onset,
         offset,
+        latency,
     )
     return _compute(batch, settings, METRICS.names())
 
@@ -292,14 +302,16 @@ def null_episode_metrics(
     offset: int | None,
     settings: MetricSettings,
     detector: str = "",
+    latency: int = 0,
 ) -> dict[str, np.ndarray]:
     """The null baseline per episode: the clean scores against the counterfactual labels.
 
-    null_auroc, null_auprc, precision, recall, f1 and detection_delay of the clean alarms
-    against `labels` (same onset as the anomaly), and clean_alarm_rate (all-zero labels).
+    null_auroc, null_auprc, precision, recall, f1 and detection_delay (with the detector's
+    `latency`) of the clean alarms against `labels` (same onset as the anomaly), and
+    clean_alarm_rate (all-zero labels).
     """
     clean = _scores(clean, "clean", detector)
-    batch = _batch(clean, clean, labels, threshold, onset, offset)
+    batch = _batch(clean, clean, labels, threshold, onset, offset, latency)
     return _compute(batch, settings, NULL_METRICS)
 
 

@@ -49,14 +49,24 @@ def alarm_rate(alarms: np.ndarray) -> np.ndarray:
     return _alarm_rows(alarms).mean(axis=1)
 
 
-def detection_delay(alarms: np.ndarray, onset: int) -> np.ndarray:
-    """First step t ≥ onset with an alarm, minus onset; T − onset when there is none."""
+def detection_delay(alarms: np.ndarray, onset: int, latency: int = 0) -> np.ndarray:
+    """Steps from the onset t* to the first alarm the detector could have raised at or after it.
+
+    An alarm on the score of step t is raised at step t + latency (the detector's look-ahead,
+    `BaseDetector.latency`): a score that uses s_{t+1} is not known before t + 1. The delay is
+    the first raise time ≥ t* minus t*, so an alarm at t ≥ t* − latency counts. A raise time at
+    or after T (beyond the recorded stream) counts as no alarm: T − t*, the largest delay.
+    """
     alarms = _alarm_rows(alarms)
     T = alarms.shape[1]  # noqa: N806 - the protocol's name for the horizon
     _window(T, onset, None)
-    after = alarms[:, onset:]
-    first = np.argmax(after, axis=1)
-    return np.where(after.any(axis=1), first, T - onset).astype(np.float64)
+    if latency < 0:
+        raise ContractError(f"latency must be >= 0 steps; got {latency}.")
+    first_counted = max(onset - latency, 0)
+    after = alarms[:, first_counted:]
+    raised = first_counted + np.argmax(after, axis=1) + latency
+    raised = np.where(after.any(axis=1), np.minimum(raised, T), T)
+    return (raised - onset).astype(np.float64)
 
 
 def segment_precision_recall(
