@@ -14,6 +14,7 @@ ANOMALIES = {
     "action_conditioned_dynamics": "online", "gradual_drift": "online",
 }  # fmt: skip
 SEVERITIES = [0.1, 0.2, 0.4, 0.6, 0.8]
+LATENCY = {"lyapunov_divergence": 5, "pedm": 1, "cusum": 1}
 
 
 def stats(rng, mean, spread=0.04, n=20):
@@ -38,6 +39,7 @@ def make_results(seed=0):
                     "anomaly": "null",
                     "mode": null_mode,
                     "severity": None,
+                    "latency": LATENCY.get(detector, 0),
                     "metrics": {
                         "null_auroc": stats(rng, rng.uniform(0.45, 0.6)),
                         "clean_alarm_rate": stats(rng, rng.uniform(0.005, 0.03), 0.003),
@@ -53,6 +55,7 @@ def make_results(seed=0):
                     "anomaly": anomaly,
                     "mode": mode,
                     "severity": 0.5,
+                    "latency": LATENCY.get(detector, 0),
                     "metrics": {
                         "matched_auroc": stats(rng, auroc),
                         "matched_auprc": stats(rng, min(auroc + 0.03, 1.0)),

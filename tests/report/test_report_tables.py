@@ -21,6 +21,9 @@ def stats(mean):
     }
 
 
+LATENCY = {"a": 0, "b": 5}
+
+
 def record(detector, anomaly, mode="posthoc", severity=0.5, kind="anomaly", **metrics):
     return {
         "kind": kind,
@@ -28,6 +31,7 @@ def record(detector, anomaly, mode="posthoc", severity=0.5, kind="anomaly", **me
         "anomaly": anomaly,
         "mode": mode,
         "severity": severity,
+        "latency": LATENCY[detector],
         "metrics": {name: stats(value) for name, value in metrics.items()},
     }
 
@@ -72,9 +76,16 @@ def table_after(text, heading):
     return rows[0], rows[2:]
 
 
+def table_with(text, header_start):
+    """(header, rows) of the first table whose header row starts with `header_start`."""
+    lines = text.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(header_start))
+    return table_after("\n".join(lines[start - 1 :]), lines[start - 1])
+
+
 def test_headline_table_ranks_detectors_by_mean_matched_auroc():
     header, rows = table_after("x\n" + headline_table(SMALL), "x")
-    assert header == ["detector", "matched AUROC", "matched AUPRC", "anomalies"]
+    assert header == ["detector", "matched AUROC", "matched AUPRC (AP)", "anomalies"]
     assert rows == [["b", "0.775", "0.800", "2"], ["a", "0.750", "0.700", "2"]]
 
 
@@ -86,10 +97,18 @@ def test_best_detector_per_anomaly():
     assert rows[1][:4] == ["stuck", "online", "0.50", "b"]
 
 
-def test_delay_tables_compare_best_auroc_with_fastest():
+def test_every_auprc_label_says_average_precision():
+    text = render_tables(SMALL, SWEEP)
+    assert text.count("AUPRC") == text.count("AUPRC (AP)") + text.count("AUPRC is average")
+    assert "AUPRC (AP)" in headline_table(SMALL)
+
+
+def test_delay_tables_compare_best_auroc_with_fastest_and_state_the_latency():
     text = render_tables(SMALL)
-    _, per_detector = table_after(text, "## Detection delay")
-    assert per_detector == [["a", "17.5"], ["b", "26.0"]]  # lower is better
+    assert "counts at t + latency" in text
+    header, per_detector = table_with(text, "| detector | latency")
+    assert header == ["detector", "latency (steps)", "mean delay"]
+    assert per_detector == [["a", "0", "17.5"], ["b", "5", "26.0"]]  # lower is better
     per_anomaly = [r for r in text.split("\n\n") if "best-AUROC detector" in r and "delay" in r][0]
     _, rows = table_after("x\n" + per_anomaly, "x")
     assert rows == [["noise", "a", "30.0", "b", "2.0"], ["stuck", "b", "50.0", "a", "5.0"]]
@@ -144,6 +163,10 @@ def test_missing_metrics_render_as_dashes():
     _, rows = table_after(text, "## Detectors")
     assert rows == [["a", "0.600", "—", "1"]]
     assert "## Detection delay" in text
+    # A results file from before latencies were recorded shows a dash.
+    del results["records"][0]["latency"]
+    _, rows = table_with(render_tables(results), "| detector | latency")
+    assert rows == [["a", "—", "—"]]
 
 
 def test_markdown_table_alignment():
@@ -156,30 +179,16 @@ def test_markdown_table_alignment():
     ]
 
 
-def test_metrics_json_is_flat_sorted_and_rounded():
-    data = metrics_json(SMALL, SWEEP)
-    assert data["detectors"]["a"] == {
-        "clean_alarm_rate": 0.02,
-        "detection_delay": 17.5,
-        "matched_auprc": 0.7,
-        "matched_auroc": 0.75,
-        "matched_fpr95": 0.25,
-    }
-    assert data["anomalies"] == {
-        "noise": {"best_matched_auroc": 0.9},
-        "stuck": {"best_matched_auroc": 0.85},
-    }
-    assert data["sweep"] == {
-        "noise": {"a": {"mean_matched_auroc": 0.55}, "b": {"mean_matched_auroc": 0.55}}
-    }
-    text = json.dumps(data)
-    assert text == json.dumps(data, sort_keys=True)
-    assert "sweep" not in metrics_json(SMALL)
+def test_metrics_json_holds_only_the_headline_figures():
+    data = metrics_json(SMALL)
+    assert data == {"matched_auroc": {"a": 0.75, "b": 0.775}}
+    assert json.dumps(data) == json.dumps(data, sort_keys=True)
 
 
 def test_tables_render_the_realistic_fixture(results, sweep):
     text = render_tables(results, sweep)
     assert text.count("### ") == 9  # one sweep table per injector
     assert text == render_tables(results, sweep)
-    pedm = metrics_json(results)["detectors"]["pedm"]
-    assert all(v == round(v, 6) for v in pedm.values())
+    headline = metrics_json(results)["matched_auroc"]
+    assert len(headline) == 8
+    assert all(v == round(v, 6) for v in headline.values())

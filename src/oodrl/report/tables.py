@@ -1,10 +1,12 @@
 """Markdown tables of SPEC §7 from results.yaml and sweep_results.yaml contents.
 
 `results` is the mapping of results.yaml: `{"records": [{kind, detector, anomaly, mode,
-severity, metrics: {name: {mean, std, ci_low, ci_high, n_episodes}}}, ...]}` with `kind`
-"anomaly" or "null". `sweep` is the mapping of sweep_results.yaml: `{"sweep": {injector:
-{severity: {detector: {name: stats}}}}, "modes": {injector: mode}}`. A metric missing from a
-record is shown as "—". Which detector is "best" follows the metric's `higher_is_better`.
+severity, latency, metrics: {name: {mean, std, ci_low, ci_high, n_episodes}}}, ...]}` with
+`kind` "anomaly" or "null" (`latency`, the detector's look-ahead in steps, may be missing in
+files written before it existed). `sweep` is the mapping of sweep_results.yaml:
+`{"sweep": {injector: {severity: {detector: {name: stats}}}}, "modes": {injector: mode}}`.
+A metric missing from a record is shown as "—". Which detector is "best" follows the
+metric's `higher_is_better`.
 """
 
 from __future__ import annotations
@@ -16,18 +18,14 @@ from oodrl.metrics import higher_is_better
 
 MISSING = "—"
 
-#: Per-detector means (over anomalies) exported to metrics.json for `dvc metrics diff`.
-DETECTOR_METRICS: tuple[str, ...] = (
-    "clean_alarm_rate",
-    "detection_delay",
-    "matched_auprc",
-    "matched_auroc",
-    "matched_fpr95",
-)
+#: The headline figure metrics.json holds per detector (its mean over anomalies), so that
+#: `dvc exp show` and `dvc metrics diff` compare runs in a few columns; results.yaml keeps the rest.
+HEADLINE_METRIC = "matched_auroc"
 
+#: Human names of metrics. AUPRC is average precision (the step-wise area), and says so.
 LABELS = {
     "matched_auroc": "matched AUROC",
-    "matched_auprc": "matched AUPRC",
+    "matched_auprc": "matched AUPRC (AP)",
     "matched_fpr95": "matched FPR95",
     "detection_delay": "detection delay",
 }
@@ -99,6 +97,14 @@ def best_first(values: Mapping[str, float | None], metric: str) -> list[str]:
 
 def detector_means(records: Sequence[Mapping[str, Any]], metric: str) -> dict[str, float | None]:
     return {d: mean_over_anomalies(records, d, metric) for d in detectors(records)}
+
+
+def detector_latencies(records: Iterable[Mapping[str, Any]]) -> dict[str, int | None]:
+    """Each detector's latency (steps of look-ahead) as its records state it; None if unstated."""
+    latencies: dict[str, int | None] = {}
+    for r in records:
+        latencies.setdefault(r["detector"], r.get("latency"))
+    return latencies
 
 
 SweepSeries = tuple[list[float], list[float], list[float], list[float]]
@@ -183,7 +189,7 @@ def markdown_table(
 
 
 def headline_table(results: Mapping[str, Any]) -> str:
-    """Per-detector mean matched AUROC / AUPRC over anomalies, best first (for the README)."""
+    """Per-detector mean matched AUROC / AUPRC (AP) over anomalies, best first (for the README)."""
     records = anomaly_records(results)
     aurocs = detector_means(records, "matched_auroc")
     auprcs = detector_means(records, "matched_auprc")
@@ -191,7 +197,8 @@ def headline_table(results: Mapping[str, Any]) -> str:
         [d, fmt(aurocs[d]), fmt(auprcs[d]), str(sum(r["detector"] == d for r in records))]
         for d in best_first(aurocs, "matched_auroc")
     ]
-    return markdown_table(["detector", "matched AUROC", "matched AUPRC", "anomalies"], rows)
+    header = ["detector", LABELS["matched_auroc"], LABELS["matched_auprc"], "anomalies"]
+    return markdown_table(header, rows)
 
 
 def best_per_anomaly_table(results: Mapping[str, Any]) -> str:
@@ -219,8 +226,8 @@ def best_per_anomaly_table(results: Mapping[str, Any]) -> str:
                 runner_up,
             ]
         )
-    header = ["anomaly", "mode", "σ", "best detector", "matched AUROC [95% CI]", "matched AUPRC"]
-    return markdown_table([*header, "runner-up"], rows, align="llrlrrl")
+    header = ["anomaly", "mode", "σ", "best detector", "matched AUROC [95% CI]"]
+    return markdown_table([*header, LABELS["matched_auprc"], "runner-up"], rows, align="llrlrrl")
 
 
 def per_detector_table(results: Mapping[str, Any], metric: str, title: str, digits: int) -> str:
@@ -228,6 +235,18 @@ def per_detector_table(results: Mapping[str, Any], metric: str, title: str, digi
     means = detector_means(anomaly_records(results), metric)
     rows = [[d, fmt(means[d], digits)] for d in best_first(means, metric)]
     return markdown_table(["detector", title], rows)
+
+
+def delay_table(results: Mapping[str, Any]) -> str:
+    """A detector's mean detection delay over anomalies, best first, beside its latency."""
+    records = anomaly_records(results)
+    means = detector_means(records, "detection_delay")
+    latencies = detector_latencies(records)
+    rows = [
+        [d, MISSING if latencies[d] is None else str(latencies[d]), fmt(means[d], 1)]
+        for d in best_first(means, "detection_delay")
+    ]
+    return markdown_table(["detector", "latency (steps)", "mean delay"], rows)
 
 
 def best_auroc_versus_best_table(
@@ -291,14 +310,21 @@ def render_tables(results: Mapping[str, Any], sweep: Mapping[str, Any] | None = 
     """All tables of SPEC §7 as one markdown document (tables.md, `oodrl show`)."""
     sections = [
         "# oodrl results",
-        "## Detectors: mean matched AUROC / AUPRC over anomalies",
+        "## Detectors: mean matched AUROC / AUPRC (AP) over anomalies",
+        "AUPRC is average precision (AP): the step-wise area under the precision-recall curve.",
         headline_table(results),
         "## Best detector per anomaly (by matched AUROC)",
         best_per_anomaly_table(results),
-        "## Detection delay (steps after the onset; T − t* when there is no alarm)",
-        per_detector_table(results, "detection_delay", "mean delay", 1),
+        "## Detection delay",
+        "Steps from the onset t* to the first alarm the detector could have raised: an alarm on "
+        "the score of step t counts at t + latency, the steps of the future that score uses "
+        "(1 for a score of s_{t+1}, H for lyapunov_divergence's horizon). T − t* when there is "
+        "no alarm.",
+        delay_table(results),
         best_auroc_versus_best_table(results, "detection_delay", "delay", 1),
         "## Matched FPR at 95% TPR",
+        "On the interpolated ROC curve: a score tied with the threshold counts as a fraction "
+        "(docs/SPEC.md §6).",
         per_detector_table(results, "matched_fpr95", "matched FPR95", 3),
         best_auroc_versus_best_table(results, "matched_fpr95", "FPR95", 3),
         "## Null baseline (clean evaluation trajectories, counterfactual labels)",
@@ -315,31 +341,12 @@ def _round(value: float) -> float:
     return round(float(value), 6) + 0.0
 
 
-def metrics_json(
-    results: Mapping[str, Any], sweep: Mapping[str, Any] | None = None
-) -> dict[str, Any]:
-    """Flat numbers for `dvc metrics diff`, keys sorted, floats rounded to 6 decimals.
+def metrics_json(results: Mapping[str, Any]) -> dict[str, Any]:
+    """The headline figures for `dvc exp show` / `dvc metrics diff`, rounded to 6 decimals.
 
-    detectors.<detector>.<metric>: mean over anomalies of DETECTOR_METRICS;
-    anomalies.<anomaly>.best_matched_auroc; and, with a sweep,
-    sweep.<injector>.<detector>.mean_matched_auroc (mean over the severity grid).
+    `{HEADLINE_METRIC: {detector: mean over anomalies}}`: one column per detector, so that a
+    comparison of runs fits a terminal. Every other number stays in results.yaml and
+    sweep_results.yaml (`oodrl show` renders them).
     """
-    records = anomaly_records(results)
-    out: dict[str, Any] = {"anomalies": {}, "detectors": {}}
-    for d in detectors(records):
-        means = {m: mean_over_anomalies(records, d, m) for m in DETECTOR_METRICS}
-        out["detectors"][d] = {m: _round(v) for m, v in means.items() if v is not None}
-    keys = anomaly_keys(records)
-    for key, label in sorted(anomaly_labels(keys).items(), key=lambda kl: kl[1]):
-        ranking = ranked([r for r in records if anomaly_key(r) == key], "matched_auroc")
-        if ranking:
-            out["anomalies"][label] = {"best_matched_auroc": _round(ranking[0][0])}
-    if sweep:
-        out["sweep"] = {
-            injector: {
-                d: {"mean_matched_auroc": _round(sum(means) / len(means))}
-                for d, (_, means, *_) in sorted(per_detector.items())
-            }
-            for injector, per_detector in sweep_curves(sweep).items()
-        }
-    return out
+    means = detector_means(anomaly_records(results), HEADLINE_METRIC)
+    return {HEADLINE_METRIC: {d: _round(v) for d, v in sorted(means.items()) if v is not None}}

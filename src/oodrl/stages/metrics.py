@@ -39,30 +39,36 @@ def _settings(params: Params):
     )
 
 
-def _summary(group: dict, clean: np.ndarray, threshold: float, spec: dict, settings, detector):
+def _summary(
+    group: dict, clean: np.ndarray, threshold: float, spec: dict, settings, detector, latency
+):
     """Mean, std and CI of every metric for one perturbed set against its matched clean set."""
     from oodrl.metrics.aggregate import episode_metrics, summarise
 
     per_episode = episode_metrics(
         group["scores"], clean, group["labels"], threshold,
-        spec["onset"], spec["offset"], settings, detector,
+        spec["onset"], spec["offset"], settings, detector, latency,
     )  # fmt: skip
     return summarise(per_episode, settings)
 
 
-def _null_metrics(params: Params, clean: np.ndarray, threshold: float, settings, detector):
+def _null_metrics(params: Params, clean: np.ndarray, threshold: float, settings, detector, latency):
     """The null baseline: clean scores judged against the counterfactual labels."""
     from oodrl.metrics.aggregate import null_episode_metrics, summarise
 
     T, onset, offset = params.env.T, params.env.resolved_onset, params.anomaly.offset
     labels = np.tile(make_labels(T, onset, offset), (clean.shape[0], 1))
-    per_episode = null_episode_metrics(clean, labels, threshold, onset, offset, settings, detector)
+    per_episode = null_episode_metrics(
+        clean, labels, threshold, onset, offset, settings, detector, latency
+    )
     return summarise(per_episode, settings)
 
 
 def _detector_results(params: Params, scores_dir: Path, detector: str):
     """One detector's anomaly records, its sweep summaries, and the injectors' modes."""
     settings = _settings(params)
+    # The look-ahead follows from the detector's params alone (e.g. lyapunov's horizon).
+    latency = params.detector(detector).latency
     eval_path = score_store(scores_dir, detector, "eval")
     clean_groups, clean_attrs = read_scores(eval_path, stage=f"score_clean@{detector}")
     clean = clean_groups[CLEAN_GROUP]["scores"]
@@ -72,20 +78,23 @@ def _detector_results(params: Params, scores_dir: Path, detector: str):
         path = score_store(scores_dir, detector, injector)
         groups, attrs = read_scores(path, stage=f"score@{detector}-{injector}")
         spec, modes[injector] = attrs["spec"], attrs["mode"]
-        headline = _summary(groups[HEADLINE_GROUP], clean, threshold, spec, settings, detector)
+        headline = _summary(
+            groups[HEADLINE_GROUP], clean, threshold, spec, settings, detector, latency
+        )
         records.append({
             "kind": "anomaly", "detector": detector, "anomaly": injector,
-            "mode": attrs["mode"], "severity": spec["severity"], "metrics": headline,
+            "mode": attrs["mode"], "severity": spec["severity"], "latency": latency,
+            "metrics": headline,
         })  # fmt: skip
         for severity in attrs["severities"]:
             sweep[(injector, float(severity))] = _summary(
                 groups[severity_key(severity)], clean, threshold,
-                {**spec, "severity": severity}, settings, detector,
+                {**spec, "severity": severity}, settings, detector, latency,
             )  # fmt: skip
-    null = _null_metrics(params, clean, threshold, settings, detector)
+    null = _null_metrics(params, clean, threshold, settings, detector, latency)
     records.extend(
         {"kind": "null", "detector": detector, "anomaly": "null", "mode": mode,
-         "severity": None, "metrics": null}
+         "severity": None, "latency": latency, "metrics": null}
         for mode in sorted(set(modes.values()))
     )  # fmt: skip
     return records, sweep, modes
@@ -146,6 +155,6 @@ def run_metrics(
     atomic_write_text(results_path, yamlio.dump(results))
     atomic_write_text(sweep_path, yamlio.dump(sweep))
     atomic_write_text(
-        metrics_path, json.dumps(metrics_json(results, sweep), indent=2, sort_keys=True) + "\n"
+        metrics_path, json.dumps(metrics_json(results), indent=2, sort_keys=True) + "\n"
     )
     atomic_write_text(tables_path, render_tables(results, sweep))
