@@ -30,7 +30,9 @@ def default_params(_default_params) -> dict:
 @pytest.fixture(scope="session")
 def heuristic_clean():
     """Eight clean LunarLander streams of T=300 from gymnasium's heuristic controller."""
+    from rollout_policies import HeuristicPolicy
+
     from oodrl.envs.collect import collect
-    from oodrl.envs.lunar_lander import HeuristicPolicy, LunarLanderAdapter
+    from oodrl.envs.lunar_lander import LunarLanderAdapter
 
     return collect(LunarLanderAdapter(), HeuristicPolicy(), range(100, 108), 300)

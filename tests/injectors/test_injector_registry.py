@@ -22,7 +22,12 @@ EXPECTED = {
 }
 DEFAULTS = {
     "observation_delay": {"max_delay": 10},
-    "action_conditioned_dynamics": {"target_action": 2},
+    # The predicate is the environment's to choose (params.yaml): no default target.
+    "action_conditioned_dynamics": {
+        "target_action": None,
+        "target_dim": None,
+        "target_threshold": None,
+    },
     "gradual_drift": {"ramp_steps": 200},
 }
 
@@ -39,7 +44,8 @@ def test_each_injector_knows_its_name_mode_and_defaults(name):
     injector = cls.from_params({})
     assert injector.get_params() == {"severity": None, **DEFAULTS.get(name, {})}
     spec = injector.spec(0.4, 10)
-    assert (spec.name, spec.mode, dict(spec.params)) == (name, cls.mode, DEFAULTS.get(name, {}))
+    recorded = {k: v for k, v in DEFAULTS.get(name, {}).items() if v is not None}
+    assert (spec.name, spec.mode, dict(spec.params)) == (name, cls.mode, recorded)
 
 
 def test_importing_the_registry_imports_no_injector_module():
@@ -73,6 +79,18 @@ def test_severity_outside_the_unit_interval_is_refused(name, severity):
         ("observation_delay", {"max_delay": 2.5}, "'max_delay' parameter"),
         ("gradual_drift", {"ramp_steps": 0}, "'ramp_steps' parameter of GradualDrift"),
         ("action_conditioned_dynamics", {"target_action": -1}, "'target_action' parameter"),
+        ("action_conditioned_dynamics", {"target_dim": 1.5}, "'target_dim' parameter"),
+        ("action_conditioned_dynamics", {"target_threshold": "0"}, "'target_threshold' param"),
+        (
+            "action_conditioned_dynamics",
+            {"target_action": 2, "target_dim": 0, "target_threshold": 0.0},
+            "either 'target_action' .* or both 'target_dim' and 'target_threshold'",
+        ),
+        (
+            "action_conditioned_dynamics",
+            {"target_dim": 0},
+            "either 'target_action' .* or both 'target_dim' and 'target_threshold'",
+        ),
         ("gaussian_state_noise", {"sigma": 0.1}, "has no parameter 'sigma'"),
     ],
 )
@@ -84,6 +102,9 @@ def test_invalid_parameters_are_refused(name, params, message):
 def test_valid_parameters_are_accepted():
     assert INJECTORS.get("observation_delay").from_params({"max_delay": 1, "severity": 0.0})
     assert INJECTORS.get("gradual_drift").from_params({"ramp_steps": 1, "severity": 1.0})
+    conditioned = INJECTORS.get("action_conditioned_dynamics")
+    assert conditioned.from_params({"target_dim": 1, "target_threshold": -0.5})
+    assert conditioned.from_params({"target_action": 0}).spec(0.5, 3).params == {"target_action": 0}
 
 
 def test_injector_rng_depends_on_seed_name_and_episode_and_on_nothing_else():

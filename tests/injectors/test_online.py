@@ -2,10 +2,11 @@ import pickle
 
 import numpy as np
 import pytest
+from rollout_policies import HeuristicPolicy
 
 from oodrl.core.injector import Fault
 from oodrl.envs.collect import collect
-from oodrl.envs.lunar_lander import HeuristicPolicy, LunarLanderAdapter
+from oodrl.envs.lunar_lander import LunarLanderAdapter
 from oodrl.errors import ConfigError
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.apply import collect_online, injector_rng
@@ -25,8 +26,12 @@ def clean():
     return collect(ADAPTER, POLICY, SEEDS, T)
 
 
+#: The action-conditioned predicate on LunarLander: the main engine (SPEC §4).
+TARGETS = {"action_conditioned_dynamics": {"target_action": 2}}
+
+
 def make(name: str, **params):
-    return INJECTORS.get(name).from_params(params)
+    return INJECTORS.get(name).from_params({**TARGETS.get(name, {}), **params})
 
 
 def run(injector, severity: float, seeds=SEEDS, horizon: int = T, onset: int = ONSET, seed=0):
@@ -96,19 +101,23 @@ def test_stuck_actuator_holds_with_probability_severity():
 
 
 class Recording(Fault):
-    """Wraps a fault and records each after_step call: (t, previous, simulator's own, returned)."""
+    """Wraps a fault and records, per step, the simulator's state before the step, its own
+    state after it, the commanded action, the state after the fault, and the observation."""
 
     def __init__(self, inner: Fault) -> None:
         self.inner = inner
-        self.calls: list[tuple[int, np.ndarray, np.ndarray, int, np.ndarray]] = []
+        self.calls: list[tuple[int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
+        self._before: np.ndarray | None = None
 
-    def executed_action(self, t, commanded):
-        return self.inner.executed_action(t, commanded)
+    def before_step(self, t, commanded, sim):
+        self._before = sim.read_state()
+        return self.inner.before_step(t, commanded, sim)
 
-    def after_step(self, t, previous, observation, commanded, sim):
-        returned = self.inner.after_step(t, previous, observation, commanded, sim)
+    def after_step(self, t, observation, commanded, sim):
+        own = sim.read_state()
+        returned = self.inner.after_step(t, observation, commanded, sim)
         self.calls.append(
-            (t, previous.copy(), observation.copy(), int(commanded), np.array(returned))
+            (t, self._before, own, int(commanded), sim.read_state(), np.array(returned))
         )
         return returned
 
@@ -132,20 +141,23 @@ def test_written_increments_are_the_simulators_increments_times_the_factor(name,
     assert tset.dones[:, ONSET:-1].any()  # the checks below cover steps right after a reset
     for j, fault in enumerate(faults):
         assert [call[0] for call in fault.calls] == list(range(ONSET, T))
-        for t, previous, own, commanded, returned in fault.calls:
-            # `previous` is what the policy acted on: after a reset, the reset observation.
-            np.testing.assert_array_equal(previous, tset.states[j, t])
+        for t, before, own, commanded, written, returned in fault.calls:
+            # The state the policy acted on: after a reset, the reset observation's.
+            np.testing.assert_array_equal(before, tset.states[j, t, :6])
             np.testing.assert_array_equal(returned, tset.next_states[j, t])
             factor = expected_factor(name, severity, t, commanded)
-            np.testing.assert_allclose(
-                returned[:6] - previous[:6], factor * (own[:6] - previous[:6]), atol=2e-6
-            )
-            np.testing.assert_array_equal(returned[6:], own[6:])  # leg contacts: the simulator's
+            # Box2D keeps float32 bodies: the written state reads back to float32 rounding.
+            np.testing.assert_allclose(written - before, factor * (own - before), atol=2e-6)
+            np.testing.assert_array_equal(returned[:6], written.astype(np.float32))
             if factor == 1.0:
-                np.testing.assert_array_equal(returned, own)
+                np.testing.assert_array_equal(written, own)
 
 
 def test_action_conditioned_dynamics_checks_the_target_action_against_the_environment():
     injector = make("action_conditioned_dynamics", target_action=4)
     with pytest.raises(ConfigError, match=r"target_action.*\[0, 4\)"):
         run(injector, 0.5)
+    for params in ({}, {"target_dim": 0, "target_threshold": 0.0}):
+        injector = INJECTORS.get("action_conditioned_dynamics").from_params(params)
+        with pytest.raises(ConfigError, match=r"'target_action'.*LunarLander-v3 has 4 discrete"):
+            run(injector, 0.5)

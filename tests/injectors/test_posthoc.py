@@ -4,11 +4,12 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from rollout_policies import HeuristicPolicy
 
 from oodrl.core.spec import AnomalySpec
 from oodrl.core.trajectory import Trajectory
 from oodrl.envs.collect import collect
-from oodrl.envs.lunar_lander import HeuristicPolicy, LunarLanderAdapter
+from oodrl.envs.lunar_lander import LunarLanderAdapter
 from oodrl.errors import ContractError
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.apply import perturb_posthoc
@@ -43,8 +44,10 @@ def post_onset_distance(name: str, clean, severity: float) -> float:
 
 @st.composite
 def trajectories(draw):
-    """A random trajectory with episode resets, an onset >= 1 and an optional offset."""
+    """A random trajectory with episode resets, an onset >= 1, an optional offset, and
+    discrete or continuous actions (which no post-hoc injector may touch)."""
     length = draw(st.integers(4, 50))
+    action_dim = draw(st.none() | st.integers(1, 3))
     d = draw(st.integers(1, 8))
     onset = draw(st.integers(1, length - 1))
     offset = draw(st.none() | st.integers(onset + 1, length))
@@ -55,7 +58,11 @@ def trajectories(draw):
     next_states[dones] = rng.normal(size=(int(dones.sum()), d))
     trajectory = Trajectory(
         states=stream[:-1],
-        actions=rng.integers(0, 4, length),
+        actions=(
+            rng.integers(0, 4, length)
+            if action_dim is None
+            else rng.uniform(-1, 1, (length, action_dim)).astype(np.float32)
+        ),
         rewards=rng.normal(size=length).astype(np.float32),
         next_states=next_states,
         dones=dones,

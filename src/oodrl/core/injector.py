@@ -8,10 +8,11 @@ observation stream of a copy of a clean trajectory; online injectors hand the co
 from __future__ import annotations
 
 from abc import abstractmethod
-from typing import ClassVar, Protocol
+from typing import ClassVar
 
 import numpy as np
 
+from oodrl.core.adapter import EnvironmentAdapter, SimulatorHandle
 from oodrl.core.spec import AnomalySpec
 from oodrl.core.trajectory import Trajectory
 from oodrl.errors import ContractError
@@ -35,16 +36,19 @@ class BaseAnomalyInjector(Component):
     def injector_name(self) -> str:
         return self.name or type(self).__name__
 
-    def check_adapter(self, adapter) -> None:
+    def check_adapter(self, adapter: EnvironmentAdapter) -> None:
         """Refuse parameters the environment cannot honour (e.g. an action it lacks).
 
-        Called when params are validated and before collection; `adapter` may be the adapter
-        class (its `env_id`, `state_dim`, `n_actions` are class attributes).
+        Called when params are validated and before collection.
         """
 
     def spec(self, severity: float, onset: int, offset: int | None = None) -> AnomalySpec:
-        """The AnomalySpec of this injector at a severity (its own parameters recorded)."""
-        params = {k: v for k, v in self.get_params().items() if k != "severity"}
+        """The AnomalySpec of this injector at a severity (its own parameters recorded).
+
+        A parameter left at None does not apply to this run (a discrete environment's
+        `action_conditioned_dynamics` has no `target_dim`), so it is not part of the spec.
+        """
+        params = {k: v for k, v in self.get_params().items() if k != "severity" and v is not None}
         return AnomalySpec(self.injector_name, severity, onset, offset, self.mode, params)
 
 
@@ -88,34 +92,19 @@ class PostHocInjector(BaseAnomalyInjector):
         return trajectory.replace(states=states, next_states=next_states), labels
 
 
-class SimulatorHandle(Protocol):
-    """What an environment adapter exposes to an online fault for one live environment."""
-
-    def observation(self) -> np.ndarray:
-        """The current observation, computed from the simulator's state."""
-
-    def write_observation(self, observation: np.ndarray) -> np.ndarray:
-        """Write a state into the simulator so that it reads back as `observation`;
-        returns the observation the simulator now yields (equal up to float32 rounding)."""
-
-
 class Fault:
     """A live fault for one deployment stream; the collector calls it on labelled steps only.
 
-    Default hooks do nothing, so a subclass overrides only the hook its fault needs.
+    Default hooks do nothing, so a subclass overrides only the hook its fault needs. `commanded`
+    is the policy's action: an int64 index, or a float32 vector for continuous actions.
     """
 
-    def executed_action(self, t: int, commanded: np.ndarray) -> np.ndarray:
-        """The action the simulator executes at step t, given the policy's commanded action."""
+    def before_step(self, t: int, commanded: np.ndarray, sim: SimulatorHandle) -> np.ndarray:
+        """Called before `env.step` at step t; returns the action the simulator executes."""
         return commanded
 
     def after_step(
-        self,
-        t: int,
-        previous: np.ndarray,
-        observation: np.ndarray,
-        commanded: np.ndarray,
-        sim: SimulatorHandle,
+        self, t: int, observation: np.ndarray, commanded: np.ndarray, sim: SimulatorHandle
     ) -> np.ndarray:
         """Called after `env.step` at step t; returns the observation the policy sees next
         (writing the simulator's state through `sim` if the fault changes the dynamics)."""

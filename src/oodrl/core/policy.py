@@ -7,17 +7,23 @@ from typing import Protocol
 
 import numpy as np
 
+from oodrl.core.adapter import ActionKind
+
 
 class Policy(Protocol):
-    """Maps a batch of observations (n, d) to actions (n,).
+    """Maps a batch of observations (n, state_dim) to actions: (n,) int64 indices for
+    discrete actions, (n, action_size) float32 vectors for continuous ones.
 
     `rngs[i]` is the noise stream of row i's deployment stream (NoisyNet noise in `noisy`
     mode); a deterministic policy ignores it. Rows must not influence each other.
     """
 
     state_dim: int
-    n_actions: int
+    action_kind: ActionKind
+    #: The number of discrete actions, or the continuous action vector's dimension.
+    action_size: int
     sha256: str
+    mode: str
 
     def act(
         self, observations: np.ndarray, rngs: Sequence[np.random.Generator] | None

@@ -1,4 +1,8 @@
-"""Environment adapters: the only environment-aware code in oodrl (SPEC §2)."""
+"""Environment adapters: the only environment-aware code in oodrl (SPEC §2, §11).
+
+Registered lazily by Gymnasium id; `ENVIRONMENTS.get(id)()` is the adapter every collector,
+injector check and stage is handed.
+"""
 
 from oodrl.registry import Registry
 

@@ -13,9 +13,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from oodrl.core.adapter import EnvironmentAdapter
 from oodrl.core.injector import Fault
 from oodrl.core.policy import Policy
 from oodrl.core.trajectory import TrajectorySet
+from oodrl.errors import PolicyError
 
 #: Streams per block; part of the protocol (it fixes the policy's batch shapes).
 BLOCK_SIZE = 16
@@ -42,34 +44,69 @@ class _Block:
     faults: tuple[Fault | None, ...]
 
 
-def _rollout_block(adapter, policy: Policy, block: _Block, T: int, labels, policy_seed: int):  # noqa: N803
-    """Roll out one block of streams in lock step, the policy batched across them."""
-    n, d = len(block.seeds), adapter.state_dim
-    envs = [adapter.make() for _ in range(n)]
-    handles = [adapter.handle(env) for env in envs]
-    rngs = [noise_rng(policy_seed, s) for s in block.seeds]
-    out = {
+def _step_arrays(adapter: EnvironmentAdapter, n: int, T: int) -> dict[str, np.ndarray]:  # noqa: N803
+    """Zeroed per-step arrays of n streams; actions as SPEC §1 stores them for the action kind."""
+    d = adapter.state_dim
+    action_shape = (n, T, *adapter.action_shape)
+    return {
         "states": np.zeros((n, T, d), np.float32),
-        "actions": np.zeros((n, T), np.int64),
-        "executed_actions": np.zeros((n, T), np.int64),
+        "actions": np.zeros(action_shape, adapter.action_dtype),
+        "executed_actions": np.zeros(action_shape, adapter.action_dtype),
         "rewards": np.zeros((n, T), np.float32),
         "next_states": np.zeros((n, T, d), np.float32),
         "dones": np.zeros((n, T), bool),
         "episode_index": np.zeros((n, T), np.int32),
     }
+
+
+def _commanded(
+    adapter: EnvironmentAdapter,
+    policy: Policy,
+    obs: np.ndarray,
+    rngs: list[np.random.Generator],
+) -> np.ndarray:
+    """The policy's actions for a block, refused unless shaped as the action space needs."""
+    commanded = np.asarray(policy.act(obs, rngs))
+    expected = (len(obs), *adapter.action_shape)
+    if commanded.shape != expected:
+        raise PolicyError(
+            f"The policy returned actions of shape {commanded.shape} for {len(obs)} observations; "
+            f"{adapter.env_id} has {adapter.describe_actions()}, so expected {expected}."
+        )
+    # Casting, never rounding: discrete policies return integers already (SPEC §1).
+    return commanded.astype(adapter.action_dtype, copy=False)
+
+
+def _rollout_block(
+    adapter: EnvironmentAdapter,
+    policy: Policy,
+    block: _Block,
+    T: int,  # noqa: N803
+    labels: np.ndarray,
+    policy_seed: int,
+) -> dict[str, np.ndarray]:
+    """Roll out one block of streams in lock step, the policy batched across them."""
+    n = len(block.seeds)
+    envs = [adapter.make() for _ in range(n)]
+    handles = [adapter.handle(env) for env in envs]
+    rngs = [noise_rng(policy_seed, s) for s in block.seeds]
+    out = _step_arrays(adapter, n, T)
     episodes = [0] * n
     obs = np.stack([env.reset(seed=s)[0] for env, s in zip(envs, block.seeds, strict=True)])
+    obs = obs.astype(np.float32, copy=False)
     for t in range(T):
-        commanded = np.asarray(policy.act(obs, rngs), dtype=np.int64)
+        commanded = _commanded(adapter, policy, obs, rngs)
         out["states"][:, t] = obs
         out["actions"][:, t] = commanded
         out["episode_index"][:, t] = episodes
         for i, env in enumerate(envs):
             fault = block.faults[i] if labels[t] else None
-            action = commanded[i] if fault is None else fault.executed_action(t, commanded[i])
+            action = commanded[i]
+            if fault is not None:
+                action = fault.before_step(t, action, handles[i])
             nxt, reward, terminated, truncated, _ = env.step(action)
             if fault is not None:
-                nxt = fault.after_step(t, obs[i], nxt, commanded[i], handles[i])
+                nxt = fault.after_step(t, nxt, commanded[i], handles[i])
             done = terminated or truncated
             out["executed_actions"][i, t] = action
             out["rewards"][i, t] = reward
@@ -103,7 +140,7 @@ class Request:
 
 
 def collect_many(
-    adapter,
+    adapter: EnvironmentAdapter,
     policy: Policy,
     requests: Sequence[Request],
     T: int,  # noqa: N803
@@ -113,6 +150,7 @@ def collect_many(
     progress: Callable[[int], None] | None = None,
 ) -> list[TrajectorySet]:
     """Collect several sets at once: all their blocks share one pool of worker processes."""
+    adapter.check_policy(policy)
     jobs = []
     for index, request in enumerate(requests):
         if request.faults is not None and (
@@ -140,7 +178,15 @@ def collect_many(
     return sets
 
 
-def _run_blocks(adapter, policy, jobs, T, policy_seed, workers, progress):  # noqa: N803
+def _run_blocks(
+    adapter: EnvironmentAdapter,
+    policy: Policy,
+    jobs: list[tuple[int, _Block, np.ndarray]],
+    T: int,  # noqa: N803
+    policy_seed: int,
+    workers: int,
+    progress: Callable[[int], None] | None,
+) -> list[dict[str, np.ndarray]]:
     if workers > 1 and len(jobs) > 1:
         import multiprocessing
 
@@ -165,7 +211,7 @@ def _run_blocks(adapter, policy, jobs, T, policy_seed, workers, progress):  # no
 
 
 def collect(
-    adapter,
+    adapter: EnvironmentAdapter,
     policy: Policy,
     seeds: Sequence[int],
     T: int,  # noqa: N803

@@ -1,16 +1,22 @@
-"""LunarLander-v3 adapter: clean rollouts plus the simulator hooks online faults need.
+"""LunarLander-v3 and LunarLanderContinuous-v3: one lander, two action spaces.
 
 The observation is a fixed affine map of the lander body's position, velocity, angle and
-angular velocity (gymnasium's `LunarLander.step`), so a desired observation can be written
-back exactly by inverting that map; the legs move rigidly with the lander.
+angular velocity (gymnasium's `LunarLander.step`), so the state vector is those six observation
+coordinates, and a desired state is written back by inverting the map; the legs move rigidly
+with the lander. Leg contacts are outputs of the contact solver, not state: they are not written.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+from oodrl.core.adapter import EnvironmentAdapter, SimulatorHandle
+
+if TYPE_CHECKING:
+    import gymnasium as gym
 
 # Constants of gymnasium.envs.box2d.lunar_lander, which the observation map uses.
 _FPS = 50.0
@@ -20,39 +26,39 @@ _HALF_H = 400 / _SCALE / 2
 _LEG_DOWN = 18 / _SCALE
 
 
-class LunarLanderAdapter:
-    """Creates environments and exposes one live environment's state to online faults."""
+class LunarLanderAdapter(EnvironmentAdapter):
+    """Gymnasium's `LunarLander-v3`: 4 discrete actions (no-op, left, main, right engine)."""
 
     env_id = "LunarLander-v3"
-    state_dim = 8
-    n_actions = 4
 
-    def __init__(self, **env_kwargs: Any) -> None:
-        self.env_kwargs = env_kwargs
-
-    def make(self):
-        import gymnasium as gym
-
-        # Never a render mode: rendering keeps flame particles alive and slows every step.
-        return gym.make(self.env_id, disable_env_checker=True, **self.env_kwargs)
-
-    @staticmethod
-    def version() -> str:
-        import gymnasium
-
-        return gymnasium.__version__
-
-    def handle(self, env) -> LunarLanderHandle:
+    def handle(self, env: gym.Env) -> LunarLanderHandle:
         return LunarLanderHandle(env.unwrapped)
 
 
-class LunarLanderHandle:
-    """Read and write the observation-level state of one live LunarLander."""
+class LunarLanderContinuousAdapter(LunarLanderAdapter):
+    """`LunarLanderContinuous-v3`: (main, lateral) engine throttles in [-1, 1]."""
 
-    def __init__(self, lander_env) -> None:
+    env_id = "LunarLanderContinuous-v3"
+
+
+class LunarLanderHandle(SimulatorHandle):
+    """The lander's body coordinates in observation units.
+
+    Box2D stores positions and velocities in float32, and the observation rounds them to
+    float32, so a written state reads back to within float32 rounding, not bit for bit.
+    """
+
+    state_names = ("x", "y", "vx", "vy", "angle", "angular_velocity")
+
+    def __init__(self, lander_env: gym.Env) -> None:
         self._env = lander_env
 
-    def observation(self) -> np.ndarray:
+    def read_state(self) -> np.ndarray:
+        # Rounded to float32 first, exactly as the observation is, so a fault that scales state
+        # increments computes with the very numbers the policy saw.
+        return self._observation()[:6].astype(np.float64)
+
+    def _observation(self) -> np.ndarray:
         env = self._env
         pos, vel = env.lander.position, env.lander.linearVelocity
         return np.array(
@@ -69,24 +75,21 @@ class LunarLanderHandle:
             dtype=np.float32,
         )
 
-    def write_observation(self, observation: np.ndarray) -> np.ndarray:
-        """Move the lander (and its legs rigidly with it) so the observation reads back as given.
+    def write_state(self, state: np.ndarray) -> np.ndarray:
+        """Move the lander (and its legs rigidly with it) to the given body coordinates.
 
-        Leg contacts are outputs of the contact solver and cannot be written; they are kept.
         The reward shaping baseline is recomputed so the next reward describes the written state.
         """
         env = self._env
-        obs = np.asarray(observation, dtype=np.float64)
+        s = np.asarray(state, dtype=np.float64)
         lander = env.lander
         old_pos = np.array([lander.position.x, lander.position.y])
         old_vel = np.array([lander.linearVelocity.x, lander.linearVelocity.y])
         old_angle, old_omega = lander.angle, lander.angularVelocity
 
-        new_pos = np.array(
-            [obs[0] * _HALF_W + _HALF_W, obs[1] * _HALF_H + env.helipad_y + _LEG_DOWN]
-        )
-        new_vel = np.array([obs[2] * _FPS / _HALF_W, obs[3] * _FPS / _HALF_H])
-        new_angle, new_omega = float(obs[4]), float(obs[5]) * _FPS / 20.0
+        new_pos = np.array([s[0] * _HALF_W + _HALF_W, s[1] * _HALF_H + env.helipad_y + _LEG_DOWN])
+        new_vel = np.array([s[2] * _FPS / _HALF_W, s[3] * _FPS / _HALF_H])
+        new_angle, new_omega = float(s[4]), float(s[5]) * _FPS / 20.0
 
         turn = new_angle - old_angle
         rotation = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
@@ -102,10 +105,10 @@ class LunarLanderHandle:
         lander.angularVelocity = new_omega
         lander.awake = True
 
-        realised = self.observation()
+        observation = self._observation()
         if env.prev_shaping is not None:
-            env.prev_shaping = _shaping(realised)
-        return realised
+            env.prev_shaping = _shaping(observation)
+        return observation
 
 
 def _shaping(s: np.ndarray) -> float:
@@ -117,29 +120,3 @@ def _shaping(s: np.ndarray) -> float:
         + 10 * s[6]
         + 10 * s[7]
     )
-
-
-class HeuristicPolicy:
-    """gymnasium's hand-written LunarLander controller: a torch-free policy for tests."""
-
-    state_dim = 8
-    n_actions = 4
-    sha256 = "heuristic"
-
-    def act(self, observations: np.ndarray, rngs=None) -> np.ndarray:
-        from gymnasium.envs.box2d.lunar_lander import heuristic
-
-        return np.array([heuristic(_DISCRETE_ENV, o) for o in observations], dtype=np.int64)
-
-
-class _DiscreteEnv:
-    """Stands in for the env in gymnasium's heuristic(), which only asks `continuous`."""
-
-    continuous = False
-
-    @property
-    def unwrapped(self):
-        return self
-
-
-_DISCRETE_ENV = _DiscreteEnv()

@@ -8,6 +8,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from oodrl.core.adapter import EnvironmentAdapter
 from oodrl.core.injector import BaseAnomalyInjector, OnlineInjector, PostHocInjector
 from oodrl.core.policy import Policy
 from oodrl.core.spec import AnomalySpec
@@ -59,7 +60,7 @@ def perturb_posthoc(
 
 def collect_online(
     injector: OnlineInjector,
-    adapter,
+    adapter: EnvironmentAdapter,
     policy: Policy,
     seeds: Sequence[int],
     T: int,  # noqa: N803 - T is the protocol's name for the horizon
@@ -80,7 +81,7 @@ def collect_online(
 
 def collect_online_sets(
     injector: OnlineInjector,
-    adapter,
+    adapter: EnvironmentAdapter,
     policy: Policy,
     seeds: Sequence[int],
     T: int,  # noqa: N803

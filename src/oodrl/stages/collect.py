@@ -8,23 +8,25 @@ from pathlib import Path
 import numpy as np
 
 from oodrl.config import Params
+from oodrl.core.adapter import EnvironmentAdapter
+from oodrl.core.policy import Policy
 from oodrl.core.trajectory import TrajectorySet
 from oodrl.envs import ENVIRONMENTS
 from oodrl.stages.common import progress_bar
 from oodrl.store import read_trajectories, write_sweep, write_trajectories
 
 
-def _adapter(params: Params):
+def _adapter(params: Params) -> EnvironmentAdapter:
     return ENVIRONMENTS.get(params.env.id)()
 
 
-def _policy(params: Params, policy_path: Path):
+def _policy(params: Params, policy_path: Path) -> Policy:
     from oodrl.policies.load import load_policy
 
     return load_policy(policy_path, mode=params.policy.mode)
 
 
-def _base_attrs(params: Params, adapter, policy) -> dict:
+def _base_attrs(params: Params, adapter: EnvironmentAdapter, policy: Policy) -> dict:
     return {
         "env_id": params.env.id,
         "env_version": adapter.version(),
