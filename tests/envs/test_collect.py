@@ -3,11 +3,14 @@
 from __future__ import annotations
 
 import numpy as np
-from rollout_policies import HeuristicPolicy
+import pytest
+from rollout_policies import HeuristicPolicy, LinearPolicy
 
 from oodrl.core.injector import Fault
+from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import BLOCK_SIZE, collect, episode_seed
 from oodrl.envs.lunar_lander import LunarLanderAdapter
+from oodrl.errors import PolicyError
 
 FIELDS = ("states", "actions", "rewards", "next_states", "dones", "executed_actions")
 
@@ -65,3 +68,31 @@ def test_fault_hooks_run_on_labelled_steps_only():
     np.testing.assert_array_equal(faulty.states[:, :26], clean.states[:, :26])
     assert (faulty.executed_actions[:, 25:] == 0).all()
     np.testing.assert_array_equal(faulty.actions[:, 25], clean.actions[:, 25])
+
+
+@pytest.mark.parametrize("env_id", ENVIRONMENTS.names())
+def test_actions_are_stored_as_the_action_space_needs(env_id):
+    adapter = ENVIRONMENTS.get(env_id)()
+    policy = LinearPolicy(adapter, noise=0.0)
+    tset = collect(adapter, policy, [0, 1], 30)
+    shape, dtype = (2, 30, *adapter.action_shape), adapter.action_dtype
+    assert tset.actions.shape == shape and tset.actions.dtype == dtype
+    assert tset.executed_actions.shape == shape and tset.executed_actions.dtype == dtype
+    assert tset.states.shape == (2, 30, adapter.state_dim)
+    np.testing.assert_array_equal(tset.executed_actions, tset.actions)
+    # The stored actions are the policy's own, not rounded: acting again gives them back.
+    for j in range(2):
+        np.testing.assert_array_equal(policy.act(tset.states[j]), tset.actions[j])
+    if adapter.action_kind == "continuous":
+        assert len(np.unique(tset.actions)) > 10, "continuous actions must not be truncated"
+    assert tset.trajectory(0).actions.shape == (30, *adapter.action_shape)
+
+
+def test_a_policy_for_another_environment_is_refused():
+    lander = LunarLanderAdapter()
+    cartpole = ENVIRONMENTS.get("CartPole-v1")()
+    with pytest.raises(PolicyError, match=r"8-dim observations; CartPole-v1 gives 4"):
+        collect(cartpole, LinearPolicy(lander), [0], 5)
+    continuous = ENVIRONMENTS.get("LunarLanderContinuous-v3")()
+    with pytest.raises(PolicyError, match=r"LunarLanderContinuous-v3 has 2-dim continuous"):
+        collect(continuous, LinearPolicy(lander), [0], 5)
