@@ -10,34 +10,37 @@ from __future__ import annotations
 import argparse
 import time
 
-import numpy as np
+from oodrl.core.adapter import EnvironmentAdapter
+from oodrl.core.policy import Policy
 
 
-def bare_env(adapter, steps: int) -> float:
+def bare_env(adapter: EnvironmentAdapter, steps: int) -> float:
     env = adapter.make()
     env.reset(seed=0)
-    rng = np.random.default_rng(0)
+    env.action_space.seed(0)
     start = time.perf_counter()
     for _ in range(steps):
-        _, _, terminated, truncated, _ = env.step(int(rng.integers(adapter.n_actions)))
+        _, _, terminated, truncated, _ = env.step(env.action_space.sample())
         if terminated or truncated:
             env.reset()
     return steps / (time.perf_counter() - start)
 
 
-def policy_one_env(adapter, policy, steps: int) -> float:
+def policy_one_env(adapter: EnvironmentAdapter, policy: Policy, steps: int) -> float:
     env = adapter.make()
     obs, _ = env.reset(seed=0)
     start = time.perf_counter()
     for _ in range(steps):
-        action = int(policy.act(obs[None, :], None)[0])
+        action = policy.act(obs[None, :], None)[0]
         obs, _, terminated, truncated, _ = env.step(action)
         if terminated or truncated:
             obs, _ = env.reset()
     return steps / (time.perf_counter() - start)
 
 
-def batched(adapter, policy, steps: int, streams: int, workers: int) -> float:
+def batched(
+    adapter: EnvironmentAdapter, policy: Policy, steps: int, streams: int, workers: int
+) -> float:
     from oodrl.envs.collect import collect
 
     T = steps // streams  # noqa: N806
