@@ -1,7 +1,14 @@
 import numpy as np
 import pytest
 
-from oodrl.core import AnomalySpec, DetectorOutput, Trajectory, default_onset, make_labels
+from oodrl.core import (
+    AnomalySpec,
+    DetectorOutput,
+    Trajectory,
+    TrajectorySet,
+    default_onset,
+    make_labels,
+)
 from oodrl.errors import ContractError
 
 
@@ -46,6 +53,31 @@ def test_invalid_trajectory_names_the_field(field, value, message):
 def test_info_arrays_must_span_T():
     with pytest.raises(ContractError, match="info\\['executed_actions'\\]"):
         Trajectory(**_fields(), info={"executed_actions": np.zeros(3, np.int64)})
+
+
+def test_continuous_actions_are_float32_vectors_and_never_rounded():
+    fields = {**_fields(), "actions": np.linspace(-1, 1, 20).reshape(10, 2)}
+    traj = Trajectory(**fields, info={"executed_actions": np.zeros((10, 2), np.float32)})
+    assert traj.actions.dtype == np.float32 and traj.actions.shape == (10, 2)
+    np.testing.assert_array_equal(traj.actions, fields["actions"].astype(np.float32))
+    with pytest.raises(ContractError, match="executed_actions'\\] has shape \\(10,\\)"):
+        Trajectory(**fields, info={"executed_actions": np.zeros(10, np.int64)})
+
+
+def test_a_set_needs_one_executed_action_per_commanded_one():
+    n, T, d = 2, 5, 3  # noqa: N806
+    arrays = {
+        "states": np.zeros((n, T, d), np.float32),
+        "actions": np.zeros((n, T, 2), np.float32),
+        "rewards": np.zeros((n, T), np.float32),
+        "next_states": np.zeros((n, T, d), np.float32),
+        "dones": np.zeros((n, T), bool),
+        "episode_index": np.zeros((n, T), np.int32),
+        "seeds": np.arange(n),
+    }
+    assert TrajectorySet(**arrays, executed_actions=np.zeros((n, T, 2), np.float32))
+    with pytest.raises(ContractError, match="'executed_actions' has shape \\(2, 5\\)"):
+        TrajectorySet(**arrays, executed_actions=np.zeros((n, T), np.int64))
 
 
 def test_labels_and_default_onset():

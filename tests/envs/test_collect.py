@@ -96,3 +96,17 @@ def test_a_policy_for_another_environment_is_refused():
     continuous = ENVIRONMENTS.get("LunarLanderContinuous-v3")()
     with pytest.raises(PolicyError, match=r"LunarLanderContinuous-v3 has 2-dim continuous"):
         collect(continuous, LinearPolicy(lander), [0], 5)
+
+
+def test_continuous_sets_survive_a_store_round_trip(tmp_path):
+    from oodrl.store import read_trajectories, write_trajectories
+
+    adapter = ENVIRONMENTS.get("Pendulum-v1")()
+    tset = collect(adapter, LinearPolicy(adapter), [0, 1, 2], 25, attrs={"env_id": "Pendulum-v1"})
+    write_trajectories(tmp_path / "set.zarr", tset)
+    again = read_trajectories(tmp_path / "set.zarr")
+    for field in (*FIELDS, "episode_index", "seeds"):
+        stored, original = getattr(again, field), getattr(tset, field)
+        assert stored.dtype == original.dtype
+        np.testing.assert_array_equal(stored, original)
+    assert again.trajectory(1).actions.shape == (25, 1)

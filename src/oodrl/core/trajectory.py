@@ -72,6 +72,12 @@ class Trajectory:
                 f"expected {states.shape} like 'states'."
             )
         dones = _check_array("dones", self.dones, (1,), "b", T)
+        executed = self.info.get("executed_actions")
+        if executed is not None and np.shape(executed) != actions.shape:
+            raise ContractError(
+                f"Trajectory info['executed_actions'] has shape {np.shape(executed)}; expected "
+                f"{actions.shape} like 'actions' (one executed action per commanded one)."
+            )
         info = {}
         for key, value in self.info.items():
             if isinstance(value, np.ndarray) and value.ndim >= 1:
@@ -138,6 +144,11 @@ class TrajectorySet:
                     f"TrajectorySet field '{name}' has shape {value.shape}; "
                     f"expected ({n}, {T}, ...)."
                 )
+        if self.executed_actions.shape != self.actions.shape:
+            raise ContractError(
+                f"TrajectorySet 'executed_actions' has shape {self.executed_actions.shape}; "
+                f"expected {self.actions.shape} like 'actions'."
+            )
         if self.seeds.shape != (n,):
             raise ContractError(
                 f"TrajectorySet 'seeds' has shape {self.seeds.shape}; expected ({n},)."
