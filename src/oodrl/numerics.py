@@ -12,8 +12,8 @@ result, a quantity that has one answer whatever the summation order:
    summation order (Higham, *Accuracy and Stability of Numerical Algorithms*, §3.1).
 2. Rounding is monotonic: if both ends of that interval round to the same float32, so does the
    exact value, and that float32 is the answer.
-3. Otherwise (about once in 10^5 outputs) the entry is summed exactly with ``fractions.Fraction``
-   and rounded to the nearest float32 (ties to even).
+3. Otherwise (rare, unless the sum cancels: gradients) the entry is summed exactly with
+   ``math.fsum`` over the exact float64 products and rounded to the nearest float32 (ties to even).
 
 ``tanh`` is handled the same way: any libm's float64 ``tanh`` is within a few ulp of the truth;
 the rare entries whose interval straddles a float32 rounding boundary are computed with
@@ -59,30 +59,32 @@ def linear(x: np.ndarray, weight: np.ndarray, bias: np.ndarray | None = None) ->
     x64 = x32.astype(np.float64)
     w64_t = np.swapaxes(w32, -1, -2).astype(np.float64)
     y = x64 @ w64_t
-    magnitude = np.abs(x64) @ np.abs(w64_t)
     k = x32.shape[-1]
-    b32 = None
+    # Σ|x_i·w_i| only bounds the error, so float32 suffices once inflated by its own worst-case
+    # relative error, k·2⁻²⁴ (float32 products and sums of non-negative terms).
+    inflation = 1.0 + 2.0 * (k + 1) * 2.0**-24
+    magnitude = (np.abs(x32) @ np.abs(np.swapaxes(w32, -1, -2))).astype(np.float64) * inflation
+    b32 = b64 = None
     if bias is not None:
         b32 = np.broadcast_to(np.asarray(bias, dtype=np.float32), y.shape)
         b64 = b32.astype(np.float64)
         y += b64
         magnitude += np.abs(b64)
         k += 1
-    # γ_k = k·u / (1 − k·u) bounds the sum's error; doubling it also covers the rounding error of
-    # `magnitude` itself (computed in float64 too) and of forming y ± bound below.
+    # γ_k = k·u / (1 − k·u) bounds the float64 sum's error in any summation order; doubling it
+    # leaves room for the rounding of forming y ± bound below.
     gamma = k * _UNIT_ROUNDOFF / (1.0 - k * _UNIT_ROUNDOFF)
     bound = 2.0 * gamma * magnitude + np.finfo(np.float64).tiny
     result, uncertain = _round_within(y, bound)
     if uncertain.any():
-        rows = np.broadcast_to(x32, (*y.shape[:-1], x32.shape[-1]))
-        cols = np.broadcast_to(w32, (*y.shape[:-2], *w32.shape[-2:]))
-        for index in zip(*np.nonzero(uncertain), strict=True):
-            lead, row, col = index[:-2], index[-2], index[-1]
-            pairs = zip(rows[(*lead, row)], cols[(*lead, col)], strict=True)
-            terms = [Fraction(float(a)) * Fraction(float(b)) for a, b in pairs]
-            if b32 is not None:
-                terms.append(Fraction(float(b32[index])))
-            result[index] = _nearest_float32(sum(terms, Fraction(0)))
+        index = np.nonzero(uncertain)
+        lead, row, col = index[:-2], index[-2], index[-1]
+        rows = np.broadcast_to(x64, (*y.shape[:-1], x32.shape[-1]))
+        cols = np.broadcast_to(np.swapaxes(w64_t, -1, -2), (*y.shape[:-2], *w32.shape[-2:]))
+        # Products of two float32 numbers are exact in float64: the sums below are exact.
+        products = rows[(*lead, row)] * cols[(*lead, col)]
+        terms = products if b32 is None else np.concatenate([products, b64[index][:, None]], 1)
+        result[index] = [_nearest_float32_of_sum(t) for t in terms.tolist()]
     return result
 
 
@@ -243,9 +245,27 @@ def _round_bits(y: np.ndarray, bits: int = CERTIFIED_BITS) -> np.ndarray:
 
 def _round_within(y: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """float32 rounding of ``y`` and a mask of entries where ``y ± bound`` round differently."""
-    low = np.nextafter(y - bound, -np.inf).astype(np.float32)
-    high = np.nextafter(y + bound, np.inf).astype(np.float32)
+    # 2·bound also covers the rounding of y ± bound themselves.
+    low = (y - 2 * bound).astype(np.float32)
+    high = (y + 2 * bound).astype(np.float32)
     return y.astype(np.float32), low != high
+
+
+def _nearest_float32_of_sum(terms: list[float]) -> np.float32:
+    """The float32 nearest the exact sum of float64 ``terms`` (ties to even)."""
+    total = math.fsum(terms)  # the exact sum, correctly rounded to float64
+    rounded = np.float32(total)
+    # Rounding twice (exact → float64 → float32) differs from rounding once only when the float64
+    # sum lies exactly on a float32 midpoint; then the sign of the exact remainder decides.
+    below = np.nextafter(rounded, np.float32(-np.inf)) if float(rounded) > total else rounded
+    above = np.nextafter(below, np.float32(np.inf))
+    if math.isfinite(float(above)) and (float(below) + float(above)) / 2 == total:
+        remainder = math.fsum([*terms, -total])
+        if remainder > 0:
+            return above
+        if remainder < 0:
+            return below
+    return rounded
 
 
 def _nearest_float32(value: Fraction) -> np.float32:
