@@ -173,18 +173,26 @@ class Params(_Section):
         from oodrl.envs import ENVIRONMENTS
 
         try:
-            adapter = ENVIRONMENTS.get(self.env.id)
+            ENVIRONMENTS.get(self.env.id)
         except OodrlError as error:
             raise ConfigError(f"env.id: {error}") from None
         for name in self.detectors:
             self.detector(name)
         for name in self.anomaly.injectors:
-            injector = self.injector(name)
+            self.injector(name)
+        self.policy_train_config()
+
+    def check_environment(self) -> None:
+        """Injector parameters against the environment's spaces (`oodrl check-params` and the
+        collection stages; it makes an environment, so not every stage pays for it)."""
+        from oodrl.envs import ENVIRONMENTS
+
+        adapter = ENVIRONMENTS.get(self.env.id)()
+        for name in self.anomaly.injectors:
             try:
-                injector.check_adapter(adapter)
+                self.injector(name).check_adapter(adapter)
             except ConfigError as error:
                 raise ConfigError(f"anomaly.injectors.{name}: {error}") from None
-        self.policy_train_config()
 
     def policy_train_config(self):
         """policy.train as the trainer's typed settings (unknown keys refused)."""
