@@ -298,7 +298,7 @@ def test_kde_bandwidth_knob_differs_from_the_default_runs_bandwidth(repo_root):
     fit_rows = (params.data.n_id - params.data.n_calibration) * params.env.T
     n = min(kde.get("max_reference", 4096), fit_rows)
     default = bandwidth_of(
-        kde.get("bandwidth", "scott"), n, ENVIRONMENTS.get(params.env.id).state_dim
+        kde.get("bandwidth", "scott"), n, ENVIRONMENTS.get(params.env.id)().state_dim
     )
     assert values[0] != pytest.approx(default), f"bandwidth {values[0]} is the default run's own"
 
