@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 import yaml
@@ -11,7 +12,10 @@ from typer.testing import CliRunner
 
 from oodrl.cli import app
 from oodrl.config import load_params, parse_params
+
 from oodrl.errors import ConfigError
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_default_params_are_valid(default_params):
@@ -101,11 +105,6 @@ BAD = [
         _set("detectors.pedm.threshold_rule", "mean"),
         "detectors.pedm: The 'threshold_rule' parameter",
     ),
-    (
-        "target action the env lacks",
-        _set("anomaly.injectors.action_conditioned_dynamics.target_action", 4),
-        "anomaly.injectors.action_conditioned_dynamics: The 'target_action' parameter",
-    ),
     ("unknown env", _set("env.id", "LunarLander-v9"), "env.id: Unknown environment"),
     ("missing injector block", _delete("anomaly.injectors.regime_switch"), "benchmark.injectors"),
     ("negative workers", _set("executor.workers", -1), "executor.workers"),
@@ -124,6 +123,36 @@ def test_bad_params_are_one_line_errors(default_params, case, edit, message):
     assert text.startswith("params.yaml: ")
     assert message in text
     assert len(text) < 400, "a one-line error never quotes a whole section"
+
+
+def test_a_target_action_the_environment_lacks_is_refused_by_check_environment(default_params):
+    default_params["anomaly"]["injectors"]["action_conditioned_dynamics"]["target_action"] = 4
+    params = parse_params(default_params, "params.yaml")  # stages validate without gymnasium
+    with pytest.raises(ConfigError) as info:
+        params.check_environment()
+    text = str(info.value)
+    assert "\n" not in text
+    assert "anomaly.injectors.action_conditioned_dynamics: The 'target_action' parameter" in text
+
+
+def test_an_environment_file_extends_the_shared_params(tmp_path):
+    shared = yaml.safe_load((ROOT / "params.yaml").read_text())
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(shared))
+    (tmp_path / "pendulum").mkdir()
+    (tmp_path / "pendulum" / "params.yaml").write_text(
+        "extends: ../params.yaml\n"
+        "env: {id: Pendulum-v1, T: 200}\n"
+        "policy: {train: {algorithm: sac, env_id: Pendulum-v1, total_steps: 1000}}\n"
+    )
+    params = load_params(tmp_path / "pendulum" / "params.yaml")
+    assert (params.env.id, params.env.T, params.env.onset) == ("Pendulum-v1", 200, None)
+    assert params.data == parse_params(shared).data  # sections it does not name are shared
+    # policy.train is replaced whole: one environment's training settings never fit another.
+    assert type(params.policy_train_config()).__name__ == "SacConfig"
+    assert params.policy_train_config().total_steps == 1000
+    (tmp_path / "params.yaml").write_text("extends: pendulum/params.yaml\n")
+    with pytest.raises(ConfigError, match="loops back"):
+        load_params(tmp_path / "pendulum" / "params.yaml")
 
 
 def test_cross_section_error_does_not_quote_the_params(default_params):

@@ -195,17 +195,30 @@ class Params(_Section):
                 raise ConfigError(f"anomaly.injectors.{name}: {error}") from None
 
     def policy_train_config(self):
-        """policy.train as the trainer's typed settings (unknown keys refused)."""
-        from oodrl.policies.settings import TrainConfig
+        """policy.train as its trainer's typed settings (unknown keys refused).
 
-        allowed = {f.name for f in dataclasses.fields(TrainConfig)}
-        for key in self.policy.train:
+        ``algorithm`` picks the trainer: ``noisy_dqn`` (oodrl's own, discrete actions; the
+        default) or ``sac`` (Stable-Baselines3 SAC, continuous control).
+        """
+        from oodrl.policies.settings import TRAINER_CONFIGS
+
+        settings = dict(self.policy.train)
+        algorithm = settings.pop("algorithm", "noisy_dqn")
+        if algorithm not in TRAINER_CONFIGS:
+            raise ConfigError(
+                f"policy.train.algorithm: unknown trainer {algorithm!r}. "
+                f"Allowed: {', '.join(TRAINER_CONFIGS)}."
+            )
+        config_class = TRAINER_CONFIGS[algorithm]
+        allowed = {f.name for f in dataclasses.fields(config_class)}
+        for key in settings:
             if key not in allowed:
                 raise ConfigError(
-                    f"policy.train.{key}: unknown key. Allowed: {', '.join(sorted(allowed))}."
+                    f"policy.train.{key}: unknown key for algorithm {algorithm}. "
+                    f"Allowed: algorithm, {', '.join(sorted(allowed))}."
                 )
         try:
-            return TrainConfig(**self.policy.train)
+            return config_class(**settings)
         except (TypeError, ValueError) as error:
             raise ConfigError(f"policy.train: {error}") from None
 
@@ -280,15 +293,56 @@ def parse_params(data: Any, source: str = "params") -> Params:
 
 def load_params(path: Path | str = DEFAULT_PARAMS) -> Params:
     """Read and validate a params file; every problem is a one-line ConfigError."""
+    path = Path(path)
+    return parse_params(read_params_data(path), str(path))
+
+
+#: A params file may name a base file whose values it overrides (paths relative to itself).
+EXTENDS_KEY = "extends"
+
+
+def read_params_data(path: Path) -> dict[str, Any]:
+    """The params mapping of ``path`` with its ``extends`` chain merged in (no validation).
+
+    An environment's params file holds only what is specific to it and extends the shared
+    ``params.yaml`` (SPEC §11): mappings merge key by key, anything else replaces the base value.
+    """
+    data = _read_yaml(path)
+    chain = [path.resolve()]
+    while isinstance(data, dict) and EXTENDS_KEY in data:
+        base_path = (chain[-1].parent / str(data[EXTENDS_KEY])).resolve()
+        if base_path in chain:
+            raise ConfigError(f"{path}: '{EXTENDS_KEY}' chain loops back to {base_path.name}.")
+        base = _read_yaml(base_path, named_by=f"{path}: {EXTENDS_KEY}")
+        data = merge_params(base, {k: v for k, v in data.items() if k != EXTENDS_KEY})
+        chain.append(base_path)
+    return data
+
+
+#: Blocks an override replaces whole: one environment's training settings never fit another's.
+REPLACED_BLOCKS = {("policy", "train")}
+
+
+def merge_params(base: Any, override: Any, at: tuple[str, ...] = ()) -> Any:
+    """``override`` on top of ``base``: mappings merge recursively, other values (and the
+    REPLACED_BLOCKS) replace."""
+    if isinstance(base, dict) and isinstance(override, dict) and at not in REPLACED_BLOCKS:
+        merged = dict(base)
+        for key, value in override.items():
+            merged[key] = merge_params(base[key], value, (*at, key)) if key in base else value
+        return merged
+    return override
+
+
+def _read_yaml(path: Path, named_by: str = "") -> Any:
     import yaml
 
-    path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"{path}: params file not found.")
+        prefix = f"{named_by} " if named_by else ""
+        raise ConfigError(f"{prefix}{path}: params file not found.")
     try:
-        data = yaml.safe_load(path.read_text())
+        return yaml.safe_load(path.read_text())
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark else ""
         raise ConfigError(f"{path}: not valid YAML{where}.") from None
-    return parse_params(data, str(path))

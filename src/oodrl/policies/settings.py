@@ -77,3 +77,7 @@ class SacConfig:
         d = asdict(self)
         d["hidden_sizes"] = list(self.hidden_sizes)
         return d
+
+
+#: ``policy.train.algorithm`` → the settings of its trainer.
+TRAINER_CONFIGS: dict[str, type] = {"noisy_dqn": TrainConfig, "sac": SacConfig}
