@@ -12,7 +12,6 @@ from typer.testing import CliRunner
 
 from oodrl.cli import app
 from oodrl.config import load_params, parse_params
-
 from oodrl.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
