@@ -7,7 +7,7 @@ import json
 import platform
 import subprocess
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from oodrl import yamlio
 from oodrl.config import Params
@@ -16,6 +16,9 @@ from oodrl.stages.common import TIMINGS_DIR
 from oodrl.stages.metrics import score_store
 from oodrl.stages.score import CLEAN_GROUP, HEADLINE_GROUP
 from oodrl.store import read_scores, rerun_hint
+
+if TYPE_CHECKING:
+    from oodrl.report.plots import ScoreTraces
 
 
 def _load_yaml(path: Path) -> Any:
@@ -26,8 +29,11 @@ def _load_yaml(path: Path) -> Any:
     return yamlio.load(Path(path).read_text())
 
 
-def score_traces(params: Params, results: dict, scores_dir: Path) -> list[dict[str, Any]]:
-    """Example traces: per anomaly, the best detector (matched AUROC) on the first episodes."""
+def score_traces(params: Params, results: dict, scores_dir: Path) -> list[ScoreTraces]:
+    """Per anomaly, the detector worth looking at — the best by matched AUROC — with its scores
+    on every perturbed episode and every matched clean one."""
+    from oodrl.report.plots import ScoreTraces
+
     best: dict[str, tuple[float, str]] = {}
     for record in results["records"]:
         if record["kind"] == "anomaly":
@@ -36,18 +42,21 @@ def score_traces(params: Params, results: dict, scores_dir: Path) -> list[dict[s
                                           (auroc, record["detector"]))  # fmt: skip
     traces = []
     for anomaly in params.benchmark.injectors:
-        detector = best[anomaly][1]
+        auroc, detector = best[anomaly]
         clean_groups, attrs = read_scores(score_store(scores_dir, detector, "eval"))
         groups, ood_attrs = read_scores(score_store(scores_dir, detector, anomaly))
-        for episode in range(
-            min(params.metrics.traces_per_anomaly, len(clean_groups[CLEAN_GROUP]["scores"]))
-        ):
-            traces.append({
-                "anomaly": anomaly, "detector": detector, "episode": episode,
-                "perturbed": groups[HEADLINE_GROUP]["scores"][episode],
-                "clean": clean_groups[CLEAN_GROUP]["scores"][episode],
-                "threshold": float(attrs["threshold"]), "onset": ood_attrs["spec"]["onset"],
-            })  # fmt: skip
+        traces.append(
+            ScoreTraces(
+                anomaly=anomaly,
+                detector=detector,
+                perturbed=groups[HEADLINE_GROUP]["scores"],
+                clean=clean_groups[CLEAN_GROUP]["scores"],
+                threshold=float(attrs["threshold"]),
+                onset=int(ood_attrs["spec"]["onset"]),
+                matched_auroc=auroc,
+                examples=params.metrics.traces_per_anomaly,
+            )
+        )
     return traces
 
 
@@ -111,7 +120,7 @@ def run_render(
     results, sweep = _load_yaml(results_path), _load_yaml(sweep_path)
     figures_dir.mkdir(parents=True, exist_ok=True)
     plot_heatmap(results, figures_dir / "matched_auroc_heatmap.png")
-    plot_severity_curves(sweep, figures_dir / "severity_curves.png")
+    plot_severity_curves(sweep, figures_dir / "severity_curves.png", results)
     plot_score_traces(score_traces(params, results, scores_dir), figures_dir / "score_traces.png")
     write_dvc_plot_data(results, sweep, plots_dir)
     atomic_write_text(headline_path, headline_table(results))
