@@ -38,7 +38,14 @@ def _fail(error: OodrlError) -> None:
     raise typer.Exit(2 if isinstance(error, ConfigError) else 1)
 
 
-def command(name: str | None = None):
+pipeline_app = typer.Typer(
+    no_args_is_help=True,
+    help="dvc.yaml's code deps: each stage's import closure, derived from the code.",
+)
+app.add_typer(pipeline_app, name="pipeline")
+
+
+def command(name: str | None = None, group: typer.Typer = app):
     """Register a command whose OodrlErrors become a one-line message and an exit code."""
 
     def decorate(func):
@@ -49,7 +56,7 @@ def command(name: str | None = None):
             except OodrlError as error:
                 _fail(error)
 
-        return app.command(name)(wrapper)
+        return group.command(name)(wrapper)
 
     return decorate
 
@@ -90,9 +97,27 @@ def list_components() -> None:
 
 
 @command("check-params")
-def check_params(path: Annotated[Path, typer.Argument()] = Path("params.yaml")) -> None:
-    """Validate a params file; one line per problem and exit code 2 when invalid."""
+def check_params(
+    path: Annotated[Path, typer.Argument()] = Path("params.yaml"),
+    pipeline: Annotated[
+        Path | None, typer.Option(help="also check this dvc.yaml's deps cover every stage")
+    ] = None,
+    out: Annotated[Path | None, typer.Option(help="write a constant stamp when valid")] = None,
+) -> None:
+    """Validate a params file; one line per problem and exit code 2 when invalid.
+
+    Stage check_params runs it first, so `dvc repro` refuses a bad params.yaml before any
+    stage deletes its outputs; its stamp never changes, so passing re-runs nothing."""
     params = _load(path)
+    params.check_environment()
+    if pipeline is not None:
+        from oodrl.pipeline import check_coverage
+
+        check_coverage(pipeline, path)
+    if out is not None:
+        from oodrl.fileio import atomic_write_text
+
+        atomic_write_text(out, f"{path} passed `oodrl check-params`\n")
     typer.echo(
         f"{path}: ok ({len(params.benchmark.detectors)} detectors, "
         f"{len(params.benchmark.injectors)} injectors, T={params.env.T}, "
@@ -136,11 +161,12 @@ def train_policy(
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
     """Stage train_policy: train the NoisyNet DQN policy."""
+    from oodrl.stages.train import retrain_requested
     from oodrl.stages.train import train_policy as run
 
     config = _load(params)
     with _stage("train_policy"):
-        run(config, out, report)
+        run(config, out, report, retrain=retrain_requested())
 
 
 @command("collect-id")
@@ -172,8 +198,13 @@ def collect_eval(
 
 
 def _known(name: str, names: list[str], key: str) -> None:
+    from oodrl.config import did_you_mean
+
     if name not in names:
-        raise ConfigError(f"'{name}' is not listed in {key}; listed: {', '.join(names)}.")
+        raise ConfigError(
+            f"'{name}' is not listed in {key}.{did_you_mean(name, names)} "
+            f"Listed: {', '.join(names)}."
+        )
 
 
 @command("collect-ood")
@@ -278,6 +309,32 @@ def render(
     config = _load(params)
     with _stage("render"):
         run_render(config, results, sweep_results, scores, policy, figures, plots, headline, meta)
+
+
+# -- pipeline verbs -----------------------------------------------------------------------
+PipelineOption = Annotated[Path, typer.Option("--pipeline", help="the dvc.yaml to rewrite")]
+
+
+@command("write", group=pipeline_app)
+def pipeline_write(
+    pipeline: PipelineOption = Path("dvc.yaml"), params: ParamsOption = Path("params.yaml")
+) -> None:
+    """Rewrite every stage's code deps in dvc.yaml from its command's import closure."""
+    from oodrl.pipeline import write
+
+    changed = write(pipeline, params)
+    typer.echo(f"{pipeline}: code deps {'rewritten' if changed else 'already current'}")
+
+
+@command("check", group=pipeline_app)
+def pipeline_check(
+    pipeline: PipelineOption = Path("dvc.yaml"), params: ParamsOption = Path("params.yaml")
+) -> None:
+    """Fail unless dvc.yaml's code deps are exactly what `oodrl pipeline write` writes."""
+    from oodrl.pipeline import check
+
+    check(pipeline, params)
+    typer.echo(f"{pipeline}: every stage's deps cover its command's import closure")
 
 
 @command("readme-table")

@@ -4,6 +4,7 @@ git + DVC repository; each test works on its own copy (DVC cache included)."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from oodrl.testing.pipeline import copy_project, repro
 
 DETECTORS = ["mahalanobis_distance", "kde_density"]
 INJECTORS = ["observation_delay", "stuck_actuator"]
+POLICY_FILES = ("models/policy.pt", "models/policy.json")
 
 
 def tiny_params(default: dict) -> dict:
@@ -28,13 +30,42 @@ def tiny_params(default: dict) -> dict:
     return params
 
 
+# Imported by every Python process of the build (PYTHONPATH): records the files of the
+# modules it loaded, so test_deps can compare what each stage command imported with its deps.
+IMPORT_TRACE = """
+import atexit, json, os, sys
+
+
+def _record():
+    files = sorted({getattr(m, "__file__", None) or "" for m in list(sys.modules.values())})
+    path = os.path.join(os.environ["OODRL_IMPORT_TRACE"], f"{os.getpid()}.json")
+    with open(path, "w") as out:
+        json.dump({"argv": sys.argv, "files": [f for f in files if f.endswith(".py")]}, out)
+
+
+atexit.register(_record)
+"""
+
+
+def python_path(first: Path) -> str:
+    """PYTHONPATH with `first` ahead of what the environment already has."""
+    return os.pathsep.join(p for p in (str(first), os.environ.get("PYTHONPATH", "")) if p)
+
+
 @pytest.fixture(scope="session")
 def built_repo(tmp_path_factory, repo_root, _default_params) -> Path:
+    """The tiny pipeline, built once; `<it>/../import-trace` holds each process's imports."""
     if not (repo_root / "models" / "policy.pt").is_file():
         pytest.skip("models/policy.pt is not committed yet")
-    repo = copy_project(repo_root, tmp_path_factory.mktemp("built"), tiny_params(_default_params))
-    ran = repro(repo)
-    assert "train_policy" not in ran, "the committed policy and dvc.lock must prevent retraining"
+    base = tmp_path_factory.mktemp("built")
+    trace = base / "import-trace"
+    trace.mkdir()
+    (trace / "sitecustomize.py").write_text(IMPORT_TRACE)
+    repo = copy_project(repo_root, base / "repo", tiny_params(_default_params))
+    policy = {name: (repo / name).read_bytes() for name in POLICY_FILES}
+    repro(repo, env={"PYTHONPATH": python_path(trace), "OODRL_IMPORT_TRACE": str(trace)})
+    # train_policy may run (its deps changed since dvc.lock was written) but never retrains.
+    assert {name: (repo / name).read_bytes() for name in POLICY_FILES} == policy
     return repo
 
 
@@ -55,7 +86,7 @@ def edit_params(repo: Path, edit) -> None:
 def plugin_env(repo) -> dict[str, str]:
     """Makes a detector module written in the test (`oodrl_test_plugin`) importable by stages."""
     (repo / "oodrl_test_plugin.py").write_text(PLUGIN_SOURCE)
-    return {"PYTHONPATH": str(repo)}
+    return {"PYTHONPATH": python_path(repo)}
 
 
 PLUGIN_SOURCE = '''

@@ -25,8 +25,18 @@ def _add_detector(name: str, block: dict):
     return edit
 
 
+def test_plugin_missing_from_dvc_yaml_stops_repro_until_pipeline_write(repo, plugin_env):
+    edit_params(repo, _add_detector("speed", {"class": "oodrl_test_plugin:SpeedDetector"}))
+    done = run(repo, "dvc", "repro", check=False, env=plugin_env)
+    assert done.returncode != 0
+    assert "oodrl_test_plugin.py" in done.stderr and "oodrl pipeline write" in done.stderr
+    run(repo, "oodrl", "pipeline", "write", env=plugin_env)
+    assert "fit@speed" in repro(repo, env=plugin_env)
+
+
 def test_module_class_detector_is_fitted_scored_and_reported(repo, plugin_env):
     edit_params(repo, _add_detector("speed", {"class": "oodrl_test_plugin:SpeedDetector"}))
+    run(repo, "oodrl", "pipeline", "write", env=plugin_env)
     ran = repro(repo, env=plugin_env)
     assert {"fit@speed", "score_clean@speed", "metrics", "render"} <= set(ran)
     assert {f"score@speed-{i}" for i in INJECTORS} <= set(ran)
@@ -39,6 +49,7 @@ def test_module_class_detector_is_fitted_scored_and_reported(repo, plugin_env):
 def test_failing_detector_names_itself_and_the_episode_and_keep_going_completes(repo, plugin_env):
     block = {"class": "oodrl_test_plugin:ExplodingDetector", "explode_on_seed": 10001}
     edit_params(repo, _add_detector("exploding", block))
+    run(repo, "oodrl", "pipeline", "write", env=plugin_env)
     done = run(repo, "dvc", "repro", check=False, env=plugin_env)
     assert done.returncode != 0
     output = done.stdout + done.stderr

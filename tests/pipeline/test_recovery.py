@@ -1,0 +1,126 @@
+"""Recovery never destroys work: hints re-run only what is broken, a refused params edit
+deletes nothing, and a missing policy stops instead of retraining for 13 minutes."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import shlex
+from pathlib import Path
+
+import pytest
+from conftest import DETECTORS, INJECTORS, POLICY_FILES, edit_params
+
+from oodrl.errors import OodrlError
+from oodrl.stages.common import load_detector
+from oodrl.stages.render import _load_yaml
+from oodrl.stages.train import RETRAIN_COMMAND
+from oodrl.store import read_trajectories, rerun_hint
+from oodrl.testing.pipeline import repro, run
+
+pytestmark = pytest.mark.slow
+
+OUTPUT_DIRS = ("data", "models", "scores", "reports")
+
+
+def _snapshot(repo: Path) -> dict[str, str]:
+    """sha256 of every file the pipeline wrote or was given."""
+    return {
+        path.relative_to(repo).as_posix(): hashlib.sha256(path.read_bytes()).hexdigest()
+        for top in OUTPUT_DIRS
+        for path in sorted((repo / top).rglob("*"))
+        if path.is_file()
+    }
+
+
+def _error_lines(done) -> list[str]:
+    return [line for line in (done.stdout + done.stderr).splitlines() if line.startswith("error:")]
+
+
+def _dry_run(repo: Path, command: str) -> list[str]:
+    """The stages a hinted command would run (`--dry` appended), environment prefix honoured."""
+    words = shlex.split(command)
+    env = dict(word.split("=", 1) for word in words if re.fullmatch(r"[A-Z_]+=.*", word))
+    words = [word for word in words if not re.fullmatch(r"[A-Z_]+=.*", word)]
+    assert words[:2] == ["dvc", "repro"], command
+    return repro(repo, *words[2:], "--dry", env=env)
+
+
+def _commands(message: str) -> list[str]:
+    return re.findall(r"`(dvc repro [^`]*|[A-Z_]+=\S+ dvc repro [^`]*)`", message)
+
+
+def test_every_hint_reruns_only_the_broken_stage(repo):
+    detector, injector = DETECTORS[0], INJECTORS[0]
+    broken = {  # stage -> the error its missing output raises in the stage that reads it
+        "collect_eval": lambda: read_trajectories(repo / "absent.zarr", stage="collect_eval"),
+        f"fit@{detector}": lambda: load_detector(repo / "absent.pkl", stage=f"fit@{detector}"),
+        "metrics": lambda: _load_yaml(repo / "absent.yaml"),
+    }
+    for stage, fail in broken.items():
+        with pytest.raises(OodrlError) as info:
+            fail()
+        assert rerun_hint(stage) in str(info.value)
+    stages = ["collect_id", "collect_eval", f"collect_ood@{injector}", f"collect_sweep@{injector}",
+              f"fit@{detector}", f"score_clean@{detector}", f"score@{detector}-{injector}",
+              "metrics", "render"]  # fmt: skip
+    for stage in stages:
+        (command,) = _commands(rerun_hint(stage))
+        assert _dry_run(repo, command) == [stage], command
+
+
+def test_no_message_in_the_code_hints_plain_force(repo_root):
+    """Every hint comes from `rerun_hint`; `dvc repro -f` alone would retrain the policy."""
+    sources = sorted((repo_root / "src" / "oodrl").rglob("*.py"))
+    offenders = [p.name for p in sources if re.search(r"dvc repro -f", p.read_text())]
+    assert offenders == []
+
+
+def test_retrain_command_runs_train_policy_alone(repo):
+    assert _dry_run(repo, RETRAIN_COMMAND) == ["train_policy"]
+
+
+BAD_EDITS = [
+    ("severity above 1", lambda p: p["anomaly"].update(severity=1.5), "anomaly.severity"),
+    ("T zero", lambda p: p["env"].update(T=0), "env.T"),
+    ("unknown top-level key", lambda p: p.update(sedd=1), "sedd: unknown key"),
+]
+
+
+@pytest.mark.parametrize(("case", "edit", "key"), BAD_EDITS, ids=[b[0] for b in BAD_EDITS])
+def test_refused_params_edit_deletes_nothing(repo, case, edit, key):
+    before = _snapshot(repo)
+    edit_params(repo, edit)
+    done = run(repo, "dvc", "repro", check=False)
+    assert done.returncode != 0
+    errors = _error_lines(done)
+    assert len(errors) == 1 and key in errors[0], errors
+    assert "Running stage 'check_params'" in done.stdout
+    assert done.stdout.count("Running stage") == 1, "no stage may start after a refused edit"
+    assert _snapshot(repo) == before
+
+
+def test_missing_policy_stops_with_how_to_restore_and_retrain(repo):
+    (repo / "models/policy.pt").unlink()
+    before = _snapshot(repo)
+    done = run(repo, "dvc", "repro", check=False)
+    assert done.returncode != 0
+    (error,) = _error_lines(done)
+    assert "models/policy.pt missing" in error
+    assert "`git checkout -- models/policy.pt models/policy.json`" in error
+    assert f"`{RETRAIN_COMMAND}`" in error
+    assert _snapshot(repo) == before, "nothing deleted, models/policy.json included"
+
+    run(repo, "git", "checkout", "--", *POLICY_FILES)
+    assert repro(repo) == []
+
+
+def test_changed_training_settings_are_refused_not_retrained(repo):
+    before = _snapshot(repo)
+    edit_params(repo, lambda p: p["policy"]["train"].update(total_steps=1000))
+    done = run(repo, "dvc", "repro", check=False)
+    assert done.returncode != 0
+    (error,) = _error_lines(done)
+    assert error.startswith("error: policy.train.total_steps: 1000, but models/policy.pt")
+    assert f"`{RETRAIN_COMMAND}`" in error
+    assert _snapshot(repo) == before
