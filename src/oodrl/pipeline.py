@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import ast
 import io
+import os
 import re
 import shlex
 from collections.abc import Iterable, Iterator, Mapping
@@ -31,15 +32,10 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from oodrl.errors import ConfigError
 
 CLI_MODULE = "oodrl.cli"
-#: Where project modules are found, in the order Python's path has them for a stage command:
-#: the installed package's sources, then the project directory (plugins, see registry.py).
-SOURCE_DIRS = ("src", ".")
-#: Code deps are `.py` files anywhere and anything under `src/`; every other dep is data.
+#: The package sources' directory in the project; code deps are `.py` files and anything in it.
 CODE_DIR = "src"
 #: The verb whose stage checks every other stage, so it reads all their code.
 CHECK_VERB = "check-params"
@@ -59,19 +55,43 @@ _IMPORT_PATH_PREFIX = re.compile(rf"({_DOTTED}):")
 # -- the import closure --------------------------------------------------------------------
 @dataclass(frozen=True)
 class Project:
-    """A project directory: where its modules live and which of their files a stage runs."""
+    """Where a pipeline's modules live: the package sources under `root/src`, and plugins in
+    `base`, the pipeline's own directory (its stage commands run there; see registry.py).
+    Dep paths are written relative to `base`, as DVC reads them."""
 
     root: Path
+    base: Path | None = None  # None: the root
+
+    @classmethod
+    def of_pipeline(cls, pipeline_path: Path) -> Project:
+        """The project of a dvc.yaml: the nearest directory up from it holding the sources."""
+        base = pipeline_path.resolve().parent
+        cli = Path(CODE_DIR, *CLI_MODULE.split(".")).with_suffix(".py")
+        root = next((d for d in (base, *base.parents) if (d / cli).is_file()), base)
+        return cls(root, base)
+
+    @property
+    def pipeline_dir(self) -> Path:
+        return self.base or self.root
 
     def module_file(self, module: str) -> Path | None:
         """The project file that `import module` executes, or None if it is not ours."""
         relative = Path(*module.split("."))
-        for source in SOURCE_DIRS:
-            base = self.root / source / relative
+        for source in (self.root / CODE_DIR, self.pipeline_dir):
+            base = source / relative
             for candidate in (base.with_suffix(".py"), base / "__init__.py"):
                 if candidate.is_file():
                     return candidate
         return None
+
+    def relative(self, path: Path) -> str:
+        return Path(os.path.relpath(path, self.pipeline_dir)).as_posix()
+
+    def is_code_dep(self, dep: str) -> bool:
+        """A `.py` file, or anything inside the package sources; every other dep is data."""
+        code_dir = os.path.normpath(self.root / CODE_DIR)
+        path = os.path.normpath(self.pipeline_dir / dep)
+        return dep.endswith(".py") or path == code_dir or path.startswith(code_dir + os.sep)
 
     def closure(
         self, modules: Iterable[str], known: Mapping[str, set[str]] | None = None
@@ -93,11 +113,12 @@ class Project:
             if path is None:
                 continue
             files.add(path)
+            names: Iterable[str]
             if module in known:
                 names = known[module]
             else:
                 package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-                names = imported_modules(ast.walk(_parse(path)), package)
+                names = _module_imports(path, path.stat().st_mtime_ns, package)
             for name in names:
                 pending.extend(_with_parents(name))
         return files
@@ -106,7 +127,7 @@ class Project:
         """The project files the CLI command `oodrl <verb>` can execute."""
         cli = self.module_file(CLI_MODULE)
         if cli is None:
-            raise ConfigError(f"{self.root}: no {CLI_MODULE} module in {SOURCE_DIRS}.")
+            raise ConfigError(f"{self.root}: no {CLI_MODULE} module under {CODE_DIR}/.")
         package = CLI_MODULE.rpartition(".")[0]
         names = imported_modules(_command_nodes(_parse(cli), verb), package)
         return self.closure([CLI_MODULE], known={CLI_MODULE: names})
@@ -116,6 +137,12 @@ def _with_parents(module: str) -> list[str]:
     """`a.b.c` -> a, a.b, a.b.c: importing a submodule runs every parent's `__init__`."""
     parts = module.split(".")
     return [".".join(parts[: i + 1]) for i in range(len(parts))]
+
+
+@cache
+def _module_imports(path: Path, mtime_ns: int, package: str) -> frozenset[str]:
+    """Every module a file's import statements and strings name (cached per file version)."""
+    return frozenset(imported_modules(ast.walk(_parse(path)), package))
 
 
 @cache
@@ -236,10 +263,6 @@ def _stage_bodies(stages: dict[str, Any]) -> Iterator[tuple[str, dict[str, Any]]
         yield name, stage["do"] if "foreach" in stage else stage
 
 
-def is_code_dep(dep: str) -> bool:
-    return dep.endswith(".py") or dep == CODE_DIR or dep.startswith(f"{CODE_DIR}/")
-
-
 def component_files(project: Project, params: dict[str, Any], section: str) -> set[Path]:
     """Project files of the `module:Class` components a params section names (plugins)."""
     if section == "detectors":
@@ -276,8 +299,8 @@ def required_deps(project: Project, stages: dict[str, Any], params: dict[str, An
 def _dep_entries(project: Project, files: set[Path]) -> list[str]:
     """Sorted relative paths; a directory under src/ whose files are all listed is one entry."""
     covered = _covered_directories(project, files)
-    entries = {_relative(project, d) for d in covered}
-    entries |= {_relative(project, f) for f in files if not any(d in f.parents for d in covered)}
+    entries = {project.relative(d) for d in covered}
+    entries |= {project.relative(f) for f in files if not any(d in f.parents for d in covered)}
     return sorted(entries)
 
 
@@ -296,10 +319,6 @@ def _dvc_files(directory: Path) -> Iterator[Path]:
             yield path
 
 
-def _relative(project: Project, path: Path) -> str:
-    return path.relative_to(project.root).as_posix()
-
-
 # -- dvc.yaml ----------------------------------------------------------------------------------
 def _yaml():
     from ruamel.yaml import YAML
@@ -313,10 +332,10 @@ def _yaml():
 
 
 def _load_params(path: Path) -> dict[str, Any]:
-    if not path.is_file():
-        raise ConfigError(f"{path}: params file not found.")
-    data = yaml.safe_load(path.read_text())
-    return data if isinstance(data, dict) else {}
+    """The params mapping, `extends` chain merged, unvalidated: only `class:` paths are read."""
+    from oodrl.config import read_params_data
+
+    return read_params_data(path)
 
 
 def _load_pipeline(path: Path):
@@ -325,21 +344,21 @@ def _load_pipeline(path: Path):
     return _yaml().load(path.read_text())
 
 
-def _with_code_deps(deps: list[str], code: list[str]) -> list[str]:
+def _with_code_deps(project: Project, deps: list[str], code: list[str]) -> list[str]:
     """Data deps as written, then the code deps."""
-    return [d for d in deps if not is_code_dep(d)] + code
+    return [d for d in deps if not project.is_code_dep(d)] + code
 
 
 def rendered(pipeline_path: Path, params_path: Path) -> str:
     """dvc.yaml's text with every stage's code deps set to its command's closure."""
     document = _load_pipeline(pipeline_path)
-    project = Project(pipeline_path.resolve().parent)
+    project = Project.of_pipeline(pipeline_path)
     stages = document.get("stages", {})
     required = required_deps(project, stages, _load_params(params_path))
     for name, body in _stage_bodies(stages):
         if name not in required:
             continue
-        deps = _with_code_deps(list(body.get("deps") or []), required[name])
+        deps = _with_code_deps(project, list(body.get("deps") or []), required[name])
         if "deps" in body:
             body["deps"].clear()
             body["deps"].extend(deps)
@@ -372,7 +391,7 @@ def missing_deps(stages: dict[str, Any], required: dict[str, list[str]]) -> list
 
 def stages_and_required(pipeline_path: Path, params_path: Path) -> tuple[dict, dict]:
     stages = _load_pipeline(pipeline_path).get("stages", {})
-    project = Project(pipeline_path.resolve().parent)
+    project = Project.of_pipeline(pipeline_path)
     return stages, required_deps(project, stages, _load_params(params_path))
 
 

@@ -17,6 +17,7 @@ from oodrl.cli import app
 from oodrl.errors import ConfigError
 from oodrl.pipeline import (
     Project,
+    check,
     check_coverage,
     missing_deps,
     rendered,
@@ -117,6 +118,21 @@ def test_closure_counts_nested_imports_parents_and_import_path_strings(tmp_path)
         (tmp_path / name).write_text(text)
     found = {p.relative_to(tmp_path).as_posix() for p in Project(tmp_path).closure(["demo.a"])}
     assert found == set(files) - {"src/demo/unused.py"}
+
+
+def test_pipeline_in_a_subdirectory_lists_code_relative_to_itself(tmp_path, repo_root):
+    """A per-environment dvc.yaml (SPEC §12) below the project root, as DVC reads its paths."""
+    (tmp_path / "src").symlink_to(repo_root / "src")
+    sub = tmp_path / "envs" / "demo"
+    sub.mkdir(parents=True)
+    stage = {"cmd": "oodrl fit x --id data/id.zarr --out x.pkl", "deps": ["data/id.zarr"]}
+    (sub / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"fit": stage}}))
+    (sub / "params.yaml").write_text("seed: 0\n")
+    assert write(sub / "dvc.yaml", sub / "params.yaml")
+    deps = yaml.safe_load((sub / "dvc.yaml").read_text())["stages"]["fit"]["deps"]
+    assert deps[0] == "data/id.zarr" and "../../src/oodrl/stages/fit.py" in deps
+    check(sub / "dvc.yaml", sub / "params.yaml")
+    assert not write(sub / "dvc.yaml", sub / "params.yaml")
 
 
 # -- plugins named in params -----------------------------------------------------------------
