@@ -20,7 +20,6 @@ from oodrl.envs.collect import collect
 from oodrl.errors import ConfigError
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.apply import collect_online, injector_rng, perturb_posthoc
-from oodrl.injectors.online import full_factor
 
 ENV_IDS = ENVIRONMENTS.names()
 ONLINE = [name for name in INJECTORS.names() if INJECTORS.get(name).mode == "online"]
@@ -175,7 +174,7 @@ class Recording:
 @pytest.mark.parametrize("name", ["dynamics_scaling", "action_conditioned_dynamics"])
 def test_scaling_faults_scale_the_state_vector_increment(name, env_id):
     injector, adapter = make(name, env_id), adapter_of(env_id)
-    spec, factor = injector.spec(0.5, ONSET), full_factor(0.5)
+    spec, factor = injector.spec(0.5, ONSET), injector.full_factor(0.5)
     faults = [Recording(injector.fault(spec, injector_rng(0, name, j))) for j in range(2)]
     collect(adapter, policy_of(env_id), SEEDS[:2], T, labels=spec.labels(T), faults=faults)
     env = adapter.make()

@@ -23,12 +23,14 @@ EXPECTED = {
 DEFAULTS = {
     "observation_delay": {"max_delay": 10},
     # The predicate is the environment's to choose (params.yaml): no default target.
+    "dynamics_scaling": {"gain": 1.5},
     "action_conditioned_dynamics": {
+        "gain": 1.5,
         "target_action": None,
         "target_dim": None,
         "target_threshold": None,
     },
-    "gradual_drift": {"ramp_steps": 200},
+    "gradual_drift": {"gain": 1.5, "ramp_steps": 200},
 }
 
 

@@ -161,3 +161,14 @@ def test_action_conditioned_dynamics_checks_the_target_action_against_the_enviro
         injector = INJECTORS.get("action_conditioned_dynamics").from_params(params)
         with pytest.raises(ConfigError, match=r"'target_action'.*LunarLander-v3 has 4 discrete"):
             run(injector, 0.5)
+
+
+@pytest.mark.parametrize("name", ["dynamics_scaling", "action_conditioned_dynamics", "gradual_drift"])
+def test_gain_sets_the_full_severity_factor(name):
+    from oodrl.injectors import INJECTORS
+
+    default, lowered = INJECTORS.get(name)(), INJECTORS.get(name)(gain=0.3)
+    assert default.full_factor(1.0) == 2.5  # SPEC §4: 1 + 1.5σ
+    assert lowered.full_factor(1.0) == 1.3 and lowered.full_factor(0.0) == 1.0
+    with pytest.raises(ConfigError, match="'gain' parameter"):
+        INJECTORS.get(name)(gain=0.0).validate_params()

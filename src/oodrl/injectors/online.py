@@ -21,7 +21,7 @@ from oodrl.core.spec import AnomalySpec
 from oodrl.errors import ConfigError
 from oodrl.validation import Interval, IsNone
 
-#: Factor applied to the state increments at full severity: factor = 1 + DYNAMICS_GAIN · σ.
+#: SPEC §4's gain of the dynamics faults: factor = 1 + DYNAMICS_GAIN · σ (per environment: `gain`).
 DYNAMICS_GAIN = 1.5
 
 
@@ -131,21 +131,36 @@ class _ComponentAbove:
         return bool(commanded[self.dim] > self.threshold)
 
 
-def full_factor(severity: float) -> float:
-    """The dynamics faults' increment factor at a severity: 1 + 1.5σ."""
-    return 1.0 + DYNAMICS_GAIN * severity
+class ScalingInjector(OnlineInjector):
+    """The dynamics faults: state increments scaled by up to `1 + gain·σ` (SPEC §4: gain 1.5).
+
+    `gain` is a per-environment choice (SPEC §11): where the physics cannot take the full
+    factor (HalfCheetah's simulation diverges above about 1.3), the environment's params lower it.
+    """
+
+    _parameter_constraints: ClassVar[dict[str, list]] = {
+        "gain": [Interval(float, 0, None, closed="neither")],
+    }
+
+    def __init__(self, *, severity: float | None = None, gain: float = DYNAMICS_GAIN) -> None:
+        super().__init__(severity=severity)
+        self.gain = gain
+
+    def full_factor(self, severity: float) -> float:
+        """The increment factor at a severity: 1 + gain·σ."""
+        return 1.0 + self.gain * severity
 
 
-class DynamicsScaling(OnlineInjector):
-    """After each labelled step the state increment is multiplied by 1 + 1.5σ."""
+class DynamicsScaling(ScalingInjector):
+    """After each labelled step the state increment is multiplied by 1 + gain·σ."""
 
     name: ClassVar[str] = "dynamics_scaling"
 
     def fault(self, spec: AnomalySpec, rng: np.random.Generator) -> Fault:
-        return ScalingFault(_Constant(full_factor(spec.severity)))
+        return ScalingFault(_Constant(self.full_factor(spec.severity)))
 
 
-class ActionConditionedDynamics(OnlineInjector):
+class ActionConditionedDynamics(ScalingInjector):
     """As `dynamics_scaling`, only on steps where a predicate on the commanded action holds.
 
     Discrete actions: the action is `target_action` (LunarLander: 2, main engine). Continuous
@@ -157,6 +172,7 @@ class ActionConditionedDynamics(OnlineInjector):
     name: ClassVar[str] = "action_conditioned_dynamics"
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
+        **ScalingInjector._parameter_constraints,
         "target_action": [IsNone(), Interval(int, 0, None)],
         "target_dim": [IsNone(), Interval(int, 0, None)],
         "target_threshold": [IsNone(), Interval(float, None, None)],
@@ -166,11 +182,12 @@ class ActionConditionedDynamics(OnlineInjector):
         self,
         *,
         severity: float | None = None,
+        gain: float = DYNAMICS_GAIN,
         target_action: int | None = None,
         target_dim: int | None = None,
         target_threshold: float | None = None,
     ) -> None:
-        super().__init__(severity=severity)
+        super().__init__(severity=severity, gain=gain)
         self.target_action = target_action
         self.target_dim = target_dim
         self.target_threshold = target_threshold
@@ -230,22 +247,26 @@ class ActionConditionedDynamics(OnlineInjector):
             applies = _CommandedIs(self.target_action)
         else:
             applies = _ComponentAbove(self.target_dim, self.target_threshold)
-        return ScalingFault(_Constant(full_factor(spec.severity)), applies)
+        return ScalingFault(_Constant(self.full_factor(spec.severity)), applies)
 
 
-class GradualDrift(OnlineInjector):
-    """As `dynamics_scaling`, the factor ramping linearly from 1 at the onset to 1 + 1.5σ over
+class GradualDrift(ScalingInjector):
+    """As `dynamics_scaling`, the factor ramping linearly from 1 at the onset to 1 + gain·σ over
     `ramp_steps` steps, then constant."""
 
     name: ClassVar[str] = "gradual_drift"
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
+        **ScalingInjector._parameter_constraints,
         "ramp_steps": [Interval(int, 1, None)],
     }
 
-    def __init__(self, *, severity: float | None = None, ramp_steps: int = 200) -> None:
-        super().__init__(severity=severity)
+    def __init__(
+        self, *, severity: float | None = None, gain: float = DYNAMICS_GAIN, ramp_steps: int = 200
+    ) -> None:
+        super().__init__(severity=severity, gain=gain)
         self.ramp_steps = ramp_steps
 
     def fault(self, spec: AnomalySpec, rng: np.random.Generator) -> Fault:
-        return ScalingFault(_LinearRamp(spec.onset, self.ramp_steps, full_factor(spec.severity)))
+        end = self.full_factor(spec.severity)
+        return ScalingFault(_LinearRamp(spec.onset, self.ramp_steps, end))
