@@ -101,12 +101,16 @@ def test_invalid_parameters_are_refused(name, params, message):
         INJECTORS.get(name).from_params(params)
 
 
-def test_valid_parameters_are_accepted():
-    assert INJECTORS.get("observation_delay").from_params({"max_delay": 1, "severity": 0.0})
-    assert INJECTORS.get("gradual_drift").from_params({"ramp_steps": 1, "severity": 1.0})
+def test_valid_parameters_are_accepted_and_kept():
+    delay = INJECTORS.get("observation_delay").from_params({"max_delay": 1, "severity": 0.0})
+    assert (delay.max_delay, delay.severity) == (1, 0.0)
+    drift = INJECTORS.get("gradual_drift").from_params({"ramp_steps": 1, "severity": 1.0})
+    assert (drift.ramp_steps, drift.severity) == (1, 1.0)
     conditioned = INJECTORS.get("action_conditioned_dynamics")
-    assert conditioned.from_params({"target_dim": 1, "target_threshold": -0.5})
-    assert conditioned.from_params({"target_action": 0}).spec(0.5, 3).params == {"target_action": 0}
+    continuous = conditioned.from_params({"target_dim": 1, "target_threshold": -0.5})
+    assert (continuous.target_dim, continuous.target_threshold) == (1, -0.5)
+    spec = conditioned.from_params({"target_action": 0}).spec(0.5, 3)
+    assert spec.params == {"gain": 1.5, "target_action": 0}
 
 
 def test_injector_rng_depends_on_seed_name_and_episode_and_on_nothing_else():

@@ -163,7 +163,9 @@ def test_action_conditioned_dynamics_checks_the_target_action_against_the_enviro
             run(injector, 0.5)
 
 
-@pytest.mark.parametrize("name", ["dynamics_scaling", "action_conditioned_dynamics", "gradual_drift"])
+@pytest.mark.parametrize(
+    "name", ["dynamics_scaling", "action_conditioned_dynamics", "gradual_drift"]
+)
 def test_gain_sets_the_full_severity_factor(name):
     from oodrl.injectors import INJECTORS
 
