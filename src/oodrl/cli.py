@@ -127,7 +127,12 @@ def check_params(
 
 @command("evaluate-policy")
 def evaluate_policy(
-    policy: Annotated[Path, typer.Option(help="policy file")] = Path("models/policy.pt"),
+    env: Annotated[
+        str, typer.Option(help="environment of the suite; its committed policy by default")
+    ] = "LunarLander-v3",
+    policy: Annotated[
+        Path | None, typer.Option(help="policy file (default: the environment's committed one)")
+    ] = None,
     episodes: Annotated[int, typer.Option(min=1)] = 30,
     seed: Annotated[int, typer.Option(min=0)] = 1_000_000,
     mode: Annotated[str, typer.Option(help="greedy or noisy")] = "greedy",
@@ -135,13 +140,19 @@ def evaluate_policy(
     """Roll out full episodes and print the mean ± std return."""
     from oodrl.policies.evaluate import evaluate_policy as evaluate
     from oodrl.policies.load import load_policy
+    from oodrl.suite import POLICY_BARS, policy_path
 
     if mode not in ("greedy", "noisy"):
         raise ConfigError(f"--mode must be 'greedy' or 'noisy'; got {mode!r}.")
-    returns = evaluate(load_policy(policy, mode=mode), episodes=episodes, seed=seed)
+    path = policy if policy is not None else policy_path(env)
+    returns = evaluate(load_policy(path, mode=mode), episodes=episodes, seed=seed, env_id=env)
+    bar = POLICY_BARS.get(env)
+    verdict = (
+        "" if bar is None else f"; bar {bar:g}: {'met' if returns.mean() >= bar else 'NOT met'}"
+    )
     typer.echo(
-        f"{policy}: mean return {returns.mean():.1f} ± {returns.std():.1f} over {episodes} "
-        f"episodes (seeds {seed}..{seed + episodes - 1}, {mode})"
+        f"{path}: {env} mean return {returns.mean():.1f} ± {returns.std():.1f} over {episodes} "
+        f"episodes (seeds {seed}..{seed + episodes - 1}, {mode}){verdict}"
     )
 
 
