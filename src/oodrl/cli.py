@@ -40,7 +40,7 @@ def _fail(error: OodrlError) -> None:
 
 pipeline_app = typer.Typer(
     no_args_is_help=True,
-    help="dvc.yaml's code deps: each stage's import closure, derived from the code.",
+    help="The DVC pipelines (root and pipeline/<env>/), generated from one template.",
 )
 app.add_typer(pipeline_app, name="pipeline")
 
@@ -62,9 +62,10 @@ def command(name: str | None = None, group: typer.Typer = app):
 
 
 def _load(params_path: Path):
+    """Params for a stage: structure and ranges; the stage validates what it builds."""
     from oodrl.config import load_params
 
-    return load_params(params_path)
+    return load_params(params_path, components=False)
 
 
 def _stage(name: str):
@@ -100,23 +101,39 @@ def list_components() -> None:
 def check_params(
     path: Annotated[Path, typer.Argument()] = Path("params.yaml"),
     pipeline: Annotated[
-        Path | None, typer.Option(help="also check this dvc.yaml's deps cover every stage")
+        Path | None, typer.Option(help="also check this dvc.yaml is what its template gives")
     ] = None,
     out: Annotated[Path | None, typer.Option(help="write a constant stamp when valid")] = None,
+    code: Annotated[
+        Path | None, typer.Option(help="write the pipeline's code stamps in this directory")
+    ] = None,
+    merged: Annotated[
+        Path | None, typer.Option(help="write the params, extends chain merged, here")
+    ] = None,
 ) -> None:
     """Validate a params file; one line per problem and exit code 2 when invalid.
 
-    Stage check_params runs it first, so `dvc repro` refuses a bad params.yaml before any
-    stage deletes its outputs; its stamp never changes, so passing re-runs nothing."""
-    params = _load(path)
+    Stage check_params runs it first, so `dvc repro` refuses a bad params file before any
+    stage deletes its outputs; its stamp never changes, so passing re-runs nothing, and each
+    code stamp changes only with the code its stages execute."""
+    from oodrl.config import load_params
+
+    params = load_params(path)
     params.check_environment()
     if pipeline is not None:
-        from oodrl.pipeline import check_coverage
+        from oodrl import pipeline as pipelines
 
-        check_coverage(pipeline, path)
+        pipelines.check_pipeline(pipeline)
+        if code is not None:
+            pipelines.write_stamps(pipeline, path, code)
+    from oodrl.fileio import atomic_write_text
+
+    if merged is not None:
+        from oodrl import yamlio
+        from oodrl.config import read_params_data
+
+        atomic_write_text(merged, yamlio.dump(read_params_data(path)))
     if out is not None:
-        from oodrl.fileio import atomic_write_text
-
         atomic_write_text(out, f"{path} passed `oodrl check-params`\n")
     typer.echo(
         f"{path}: ok ({len(params.benchmark.detectors)} detectors, "
@@ -323,29 +340,26 @@ def render(
 
 
 # -- pipeline verbs -----------------------------------------------------------------------
-PipelineOption = Annotated[Path, typer.Option("--pipeline", help="the dvc.yaml to rewrite")]
+RootOption = Annotated[Path, typer.Option("--root", help="the project root")]
 
 
 @command("write", group=pipeline_app)
-def pipeline_write(
-    pipeline: PipelineOption = Path("dvc.yaml"), params: ParamsOption = Path("params.yaml")
-) -> None:
-    """Rewrite every stage's code deps in dvc.yaml from its command's import closure."""
-    from oodrl.pipeline import write
+def pipeline_write(root: RootOption = Path(".")) -> None:
+    """Write every pipeline's dvc.yaml (the root and pipeline/<env>/) from the template."""
+    from oodrl.pipeline import pipeline_dirs, write
 
-    changed = write(pipeline, params)
-    typer.echo(f"{pipeline}: code deps {'rewritten' if changed else 'already current'}")
+    changed = write(root)
+    typer.echo(f"{len(pipeline_dirs(root))} pipelines, {len(changed)} rewritten: "
+               f"{', '.join(map(str, changed)) or 'all current'}")  # fmt: skip
 
 
 @command("check", group=pipeline_app)
-def pipeline_check(
-    pipeline: PipelineOption = Path("dvc.yaml"), params: ParamsOption = Path("params.yaml")
-) -> None:
-    """Fail unless dvc.yaml's code deps are exactly what `oodrl pipeline write` writes."""
-    from oodrl.pipeline import check
+def pipeline_check(root: RootOption = Path(".")) -> None:
+    """Fail unless every pipeline's dvc.yaml is what `oodrl pipeline write` writes."""
+    from oodrl.pipeline import check, pipeline_dirs
 
-    check(pipeline, params)
-    typer.echo(f"{pipeline}: every stage's deps cover its command's import closure")
+    check(root)
+    typer.echo(f"{len(pipeline_dirs(root))} pipelines: every dvc.yaml is current")
 
 
 @command("readme-table")

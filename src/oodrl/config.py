@@ -3,14 +3,15 @@
 Loading validates everything a stage could read: structure and types (pydantic, unknown keys
 refused), the protocol's ranges, and every detector's and injector's own parameters (their
 declared constraints). Any problem is one `ConfigError` line naming the key path and what is
-allowed; the CLI turns it into exit code 2 before anything is written.
+allowed; the CLI turns it into exit code 2 before anything is written. Stage commands load
+with `components=False` and validate the one component they build (check_params, the first
+stage, validated them all), so each imports only its own component's code.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import difflib
-from functools import cached_property
 from pathlib import Path
 from typing import Any, Literal
 
@@ -139,31 +140,32 @@ class Params(_Section):
                 )
         return self
 
-    # -- components, validated on load -----------------------------------------------------
-    @cached_property
-    def detector_classes(self) -> dict[str, type]:
+    # -- components, validated on load (all) or when a stage builds one ---------------------
+    def detector_class(self, name: str) -> type:
         from oodrl.detectors import DETECTORS
 
-        return {
-            n: _component_class(DETECTORS, "detectors", n, b) for n, b in self.detectors.items()
-        }
+        return _component_class(DETECTORS, "detectors", name, self.detectors[name])
 
-    @cached_property
-    def injector_classes(self) -> dict[str, type]:
+    def injector_class(self, name: str) -> type:
         from oodrl.injectors import INJECTORS
 
-        return {
-            n: _component_class(INJECTORS, "anomaly.injectors", n, b)
-            for n, b in self.anomaly.injectors.items()
-        }
+        return _component_class(INJECTORS, "anomaly.injectors", name, self.anomaly.injectors[name])
+
+    @property
+    def detector_classes(self) -> dict[str, type]:
+        return {name: self.detector_class(name) for name in self.detectors}
+
+    @property
+    def injector_classes(self) -> dict[str, type]:
+        return {name: self.injector_class(name) for name in self.anomaly.injectors}
 
     def detector(self, name: str):
         """A fresh, validated detector instance built from its params block."""
-        return _build(self.detector_classes[name], f"detectors.{name}", self.detectors[name])
+        return _build(self.detector_class(name), f"detectors.{name}", self.detectors[name])
 
     def injector(self, name: str):
         block = self.anomaly.injectors[name]
-        return _build(self.injector_classes[name], f"anomaly.injectors.{name}", block)
+        return _build(self.injector_class(name), f"anomaly.injectors.{name}", block)
 
     def injector_severity(self, name: str) -> float:
         own = self.anomaly.injectors[name].get("severity")
@@ -277,13 +279,18 @@ def _format_pydantic(error: ValidationError) -> str:
     return f"{loc}: {message} (got {quoted})"
 
 
-def parse_params(data: Any, source: str = "params") -> Params:
+def parse_params(data: Any, source: str = "params", *, components: bool = True) -> Params:
+    """Validate params; `components=False` checks structure and ranges only, leaving each
+    detector, injector and trainer to be validated when a stage builds it (so a stage imports,
+    and its code stamp lists, only the components it builds; check_params validates all)."""
     if not isinstance(data, dict):
         raise ConfigError(f"{source}: must be a mapping of sections; got {type(data).__name__}.")
     try:
         params = Params.model_validate(data)
     except ValidationError as error:
         raise ConfigError(f"{source}: {_format_pydantic(error)}") from None
+    if not components:
+        return params
     try:
         params.validate_components()
     except ConfigError as error:
@@ -291,10 +298,10 @@ def parse_params(data: Any, source: str = "params") -> Params:
     return params
 
 
-def load_params(path: Path | str = DEFAULT_PARAMS) -> Params:
+def load_params(path: Path | str = DEFAULT_PARAMS, *, components: bool = True) -> Params:
     """Read and validate a params file; every problem is a one-line ConfigError."""
     path = Path(path)
-    return parse_params(read_params_data(path), str(path))
+    return parse_params(read_params_data(path), str(path), components=components)
 
 
 #: A params file may name a base file whose values it overrides (paths relative to itself).

@@ -1,32 +1,34 @@
-"""The DVC stages' code dependencies, derived from the code itself (SPEC §12).
+"""The DVC pipelines: one per environment, generated from one template, with exact code deps.
 
-Editing a module must re-run every stage whose command can execute it, so each stage's `deps`
-list the import closure of its command inside the project. The closure is a static walk of
-every `import` and `from … import` statement — those nested in functions too, since oodrl
-imports lazily — and of `module:Class` import-path strings (how the registries name their
-built-ins), starting from the stage's verb in `oodrl/cli.py` and following every module it
-reaches. In cli.py only the verb's own function and the helpers it calls count; every other
-module counts whole (importing a package runs its `__init__.py`, so those count too). The
-closure therefore over-approximates: an extra re-run is safe, a missed one is not.
+Every pipeline's dvc.yaml is rendered from `pipeline.yaml` beside this module: the root one
+(the paper default, params.yaml) and `pipeline/<env>/dvc.yaml` for every environment directory
+holding a params.yaml (which `extends` the shared one). `oodrl pipeline write` writes them all;
+`oodrl pipeline check` (and the check_params stage) fails when a committed one differs.
 
-Components that params.yaml names by a `module:Class` path to a file inside the project
-(`detectors.<name>.class`, `anomaly.injectors.<name>.class`) are deps of the stages that
-build them, and the check_params stage reads the code of every stage, since it checks them all.
+Code deps (SPEC §12) are code stamps: the check_params stage depends on the package sources
+as one directory (and on plugin files params names) and writes, per stage kind, a stamp
+`data/code/<verb>[-<component>].txt` listing the sha256 of every file that kind's command can
+execute; each stage depends on its stamp only. A stamp changes exactly when a file it lists
+does, so a code edit re-runs exactly the stages that can execute it, and dvc.lock stays small.
 
-`oodrl pipeline write` rewrites the code entries of every stage's `deps` in dvc.yaml (the other
-entries, the comments and the layout stay as written); `oodrl pipeline check` fails when
-dvc.yaml differs from what `write` would produce; `oodrl check-params --pipeline dvc.yaml`
-(the check_params stage) refuses a `dvc repro` whose dvc.yaml misses a dependency.
+A command's files are a static walk of every `import` statement (nested ones too: oodrl
+imports lazily) and `module:Class` string from its verb in cli.py, plus the modules of the
+components the stage instance builds: its detector (fit, score: unpickling imports it), its
+injector and the environment's adapter (collection). The registries of those components name
+every built-in by string; the walk does not follow those strings, or every stage would list
+every component. It over-approximates otherwise: an extra re-run is safe, a missed one is not.
 """
 
 from __future__ import annotations
 
 import ast
+import hashlib
 import io
+import itertools
 import os
 import re
 import shlex
-from collections.abc import Iterable, Iterator, Mapping
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -35,21 +37,32 @@ from typing import Any
 from oodrl.errors import ConfigError
 
 CLI_MODULE = "oodrl.cli"
-#: The package sources' directory in the project; code deps are `.py` files and anything in it.
-CODE_DIR = "src"
-#: The verb whose stage checks every other stage, so it reads all their code.
+CODE_DIR = "src"  # the package sources' directory in the project
+TEMPLATE = Path(__file__).with_name("pipeline.yaml")
+ENVIRONMENTS_DIR = "pipeline"  # pipeline/<env>/{dvc.yaml, params.yaml}
+PARAMS_FILE = "params.yaml"
 CHECK_VERB = "check-params"
-#: The params sections whose `module:Class` components each verb builds.
-COMPONENT_SECTIONS: dict[str, tuple[str, ...]] = {
-    "fit": ("detectors",),
-    "score": ("detectors",),
-    "collect-ood": ("injectors",),
-    CHECK_VERB: ("detectors", "injectors"),
+CHECKED = "data/params.checked"
+CODE_STAMPS = "data/code"
+#: An environment pipeline's stages read their params keys here: the params file merged with
+#: the files it extends, written by check_params (DVC reads a key from one file only).
+MERGED_PARAMS = "data/params.yaml"
+#: Registries whose built-ins a stage builds one at a time (see `component_modules`).
+PER_INSTANCE_REGISTRIES = frozenset({"oodrl.detectors", "oodrl.injectors", "oodrl.envs"})
+#: The components a verb's stage instance builds; the first one is named by the verb's argument.
+VERB_COMPONENTS: dict[str, tuple[str, ...]] = {
+    "fit": ("detector",),
+    "score": ("detector",),
+    "collect-ood": ("injector", "environment"),
+    "collect-id": ("environment",),
+    "collect-eval": ("environment",),
+    "render": ("environment",),
 }
 
 _DOTTED = r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*"
 _IMPORT_PATH = re.compile(rf"({_DOTTED}):[A-Za-z_]\w*")
 _IMPORT_PATH_PREFIX = re.compile(rf"({_DOTTED}):")
+_VARIABLE = re.compile(r"\$\{([\w.]+)\}")
 
 
 # -- the import closure --------------------------------------------------------------------
@@ -57,7 +70,7 @@ _IMPORT_PATH_PREFIX = re.compile(rf"({_DOTTED}):")
 class Project:
     """Where a pipeline's modules live: the package sources under `root/src`, and plugins in
     `base`, the pipeline's own directory (its stage commands run there; see registry.py).
-    Dep paths are written relative to `base`, as DVC reads them."""
+    Paths in a pipeline are relative to `base`, as DVC reads them."""
 
     root: Path
     base: Path | None = None  # None: the root
@@ -74,6 +87,10 @@ class Project:
     def pipeline_dir(self) -> Path:
         return self.base or self.root
 
+    @property
+    def package_dir(self) -> Path:
+        return self.root / CODE_DIR / CLI_MODULE.partition(".")[0]
+
     def module_file(self, module: str) -> Path | None:
         """The project file that `import module` executes, or None if it is not ours."""
         relative = Path(*module.split("."))
@@ -87,14 +104,8 @@ class Project:
     def relative(self, path: Path) -> str:
         return Path(os.path.relpath(path, self.pipeline_dir)).as_posix()
 
-    def is_code_dep(self, dep: str) -> bool:
-        """A `.py` file, or anything inside the package sources; every other dep is data."""
-        code_dir = os.path.normpath(self.root / CODE_DIR)
-        path = os.path.normpath(self.pipeline_dir / dep)
-        return dep.endswith(".py") or path == code_dir or path.startswith(code_dir + os.sep)
-
     def closure(
-        self, modules: Iterable[str], known: Mapping[str, set[str]] | None = None
+        self, modules: Iterable[str], known: dict[str, set[str]] | None = None
     ) -> set[Path]:
         """Every project file that importing `modules` can execute, transitively.
 
@@ -113,18 +124,18 @@ class Project:
             if path is None:
                 continue
             files.add(path)
-            names: Iterable[str]
             if module in known:
-                names = known[module]
+                names: Iterable[str] = known[module]
             else:
                 package = module if path.name == "__init__.py" else module.rpartition(".")[0]
-                names = _module_imports(path, path.stat().st_mtime_ns, package)
+                strings = module not in PER_INSTANCE_REGISTRIES
+                names = _module_imports(path, path.stat().st_mtime_ns, package, strings)
             for name in names:
                 pending.extend(_with_parents(name))
         return files
 
     def command_closure(self, verb: str) -> set[Path]:
-        """The project files the CLI command `oodrl <verb>` can execute."""
+        """The project files the CLI command `oodrl <verb>` can execute (components aside)."""
         cli = self.module_file(CLI_MODULE)
         if cli is None:
             raise ConfigError(f"{self.root}: no {CLI_MODULE} module under {CODE_DIR}/.")
@@ -140,9 +151,9 @@ def _with_parents(module: str) -> list[str]:
 
 
 @cache
-def _module_imports(path: Path, mtime_ns: int, package: str) -> frozenset[str]:
-    """Every module a file's import statements and strings name (cached per file version)."""
-    return frozenset(imported_modules(ast.walk(_parse(path)), package))
+def _module_imports(path: Path, mtime_ns: int, package: str, strings: bool) -> frozenset[str]:
+    """Every module a file's import statements (and strings) name, cached per file version."""
+    return frozenset(imported_modules(ast.walk(_parse(path)), package, strings))
 
 
 @cache
@@ -154,12 +165,10 @@ def _parse(path: Path) -> ast.Module:
     return _parse_cached(path, path.stat().st_mtime_ns)
 
 
-def imported_modules(nodes: Iterable[ast.AST], package: str) -> set[str]:
-    """Module names that `nodes` import: statements, import-path strings, import_module calls.
-
-    `from a import b` yields both `a` and `a.b` (b may be a submodule); names that are not
-    project modules are dropped later, when they resolve to no file.
-    """
+def imported_modules(nodes: Iterable[ast.AST], package: str, strings: bool = True) -> set[str]:
+    """Module names that `nodes` import: statements, import_module calls and, with `strings`,
+    import-path strings. `from a import b` yields `a` and `a.b` (b may be a submodule); names
+    that are not project modules are dropped later, when they resolve to no file."""
     names: set[str] = set()
     for node in nodes:
         if isinstance(node, ast.Import):
@@ -168,14 +177,18 @@ def imported_modules(nodes: Iterable[ast.AST], package: str) -> set[str]:
             base = _absolute(node.module, node.level, package)
             names.add(base)
             names.update(f"{base}.{alias.name}" for alias in node.names if alias.name != "*")
-        elif (module := _string_import(node)) is not None:
+        elif isinstance(node, ast.Call) and _called_name(node) == "import_module" and node.args:
+            argument = node.args[0]
+            if isinstance(argument, ast.Constant) and isinstance(argument.value, str):
+                names.add(argument.value)
+        elif strings and (module := _string_import(node)) is not None:
             names.add(module)
     return names
 
 
 def _string_import(node: ast.AST) -> str | None:
-    """The module a string names for a later import: a registry's "pkg.module:Class" (an
-    f-string's literal prefix included) or the argument of `import_module("pkg.module")`."""
+    """The module a registry's "pkg.module:Class" string names (an f-string's literal prefix
+    included), for a later import."""
     if isinstance(node, ast.Constant) and isinstance(node.value, str):
         match = _IMPORT_PATH.fullmatch(node.value)
         return match.group(1) if match else None
@@ -184,10 +197,6 @@ def _string_import(node: ast.AST) -> str | None:
         if isinstance(first, ast.Constant) and isinstance(first.value, str):
             match = _IMPORT_PATH_PREFIX.match(first.value)
             return match.group(1) if match else None
-    if isinstance(node, ast.Call) and _called_name(node) == "import_module" and node.args:
-        argument = node.args[0]
-        if isinstance(argument, ast.Constant) and isinstance(argument.value, str):
-            return argument.value
     return None
 
 
@@ -250,92 +259,147 @@ def _verb_function(
     raise ConfigError(f"{CLI_MODULE} has no command '{verb}'.")
 
 
-# -- stages ----------------------------------------------------------------------------------
-def stage_verb(cmd: str) -> str | None:
-    """`oodrl fit ${item} …` -> 'fit'; None for a command that is not an oodrl verb."""
+# -- stage kinds and their code ----------------------------------------------------------------
+def stage_kind(cmd: str) -> tuple[str, str | None] | None:
+    """`oodrl fit kde …` -> ('fit', 'kde'); None for a command that is not an oodrl verb."""
     words = shlex.split(cmd)
-    return words[1] if len(words) > 1 and words[0] == "oodrl" else None
+    if len(words) < 2 or words[0] != "oodrl":
+        return None
+    verb, kinds = words[1], VERB_COMPONENTS.get(words[1], ())
+    named = bool(kinds) and kinds[0] != "environment" and len(words) > 2
+    return verb, words[2] if named else None
 
 
+def stamp_path(verb: str, component: str | None) -> str:
+    """The code stamp of a stage kind (for a dvc.yaml template, `component` may be `${item}`)."""
+    return f"{CODE_STAMPS}/{verb}{f'-{component}' if component else ''}.txt"
+
+
+def component_modules(verb: str, name: str | None, params: dict[str, Any]) -> list[str]:
+    """The modules of the components a stage instance of `verb` builds (SPEC §12): a plugin's
+    `class:` path in params, else the registered path of `name` (or of env.id)."""
+    modules = []
+    for kind in VERB_COMPONENTS.get(verb, ()):
+        path = _component_path(kind, name, params)
+        modules.append(path.partition(":")[0])
+    return modules
+
+
+def _component_path(kind: str, name: str | None, params: dict[str, Any]) -> str:
+    if kind == "environment":
+        from oodrl.envs import ENVIRONMENTS
+
+        return ENVIRONMENTS.path((params.get("env") or {}).get("id", "LunarLander-v3"))
+    if kind == "detector":
+        from oodrl.detectors import DETECTORS as registry
+
+        blocks = params.get("detectors") or {}
+    else:
+        from oodrl.injectors import INJECTORS as registry
+
+        blocks = (params.get("anomaly") or {}).get("injectors") or {}
+    block = blocks.get(name) or {}
+    return block.get("class") or registry.path(str(name))
+
+
+def kind_files(project: Project, verb: str, name: str | None, params: dict) -> set[Path]:
+    """Every project file a stage instance `oodrl <verb> <name> …` can execute."""
+    return project.command_closure(verb) | project.closure(component_modules(verb, name, params))
+
+
+def stamp_text(project: Project, files: set[Path]) -> str:
+    """`sha256  path` per file, sorted by path: content only, so the stamp is reproducible."""
+    paths = sorted((project.relative(f), f) for f in files)
+    return "".join(f"{hashlib.sha256(f.read_bytes()).hexdigest()}  {p}\n" for p, f in paths)
+
+
+def plugin_files(project: Project, params: dict[str, Any]) -> set[Path]:
+    """Project files outside the package that params' `class:` paths import (plugins)."""
+    blocks = [
+        *(params.get("detectors") or {}).values(),
+        *((params.get("anomaly") or {}).get("injectors") or {}).values(),
+    ]
+    modules = [
+        match.group(1)
+        for block in blocks
+        if isinstance(block, dict)
+        and isinstance(block.get("class"), str)
+        and (match := _IMPORT_PATH.fullmatch(block["class"]))
+    ]
+    package = project.package_dir
+    return {f for f in project.closure(modules) if package not in f.parents}
+
+
+# -- stage instances -----------------------------------------------------------------------------
 def _stage_bodies(stages: dict[str, Any]) -> Iterator[tuple[str, dict[str, Any]]]:
     """(name, the mapping holding cmd and deps) for every stage, `foreach` ones included."""
     for name, stage in stages.items():
         yield name, stage["do"] if "foreach" in stage else stage
 
 
-def component_files(project: Project, params: dict[str, Any], section: str) -> set[Path]:
-    """Project files of the `module:Class` components a params section names (plugins)."""
-    if section == "detectors":
-        blocks = params.get("detectors")
-    else:
-        blocks = (params.get("anomaly") or {}).get(section)
-    files: set[Path] = set()
-    for block in (blocks or {}).values():
-        path = block.get("class") if isinstance(block, dict) else None
-        if isinstance(path, str) and (match := _IMPORT_PATH.fullmatch(path)):
-            files |= project.closure([match.group(1)])
-    return files
+def _values(spec: Any, params: dict[str, Any]) -> list:
+    """A fan-out list: written out, or `${a.b}` naming a params key."""
+    if isinstance(spec, str) and (match := _VARIABLE.fullmatch(spec)):
+        value: Any = params
+        for key in match.group(1).split("."):
+            value = value[key]
+        return list(value)
+    return list(spec)
 
 
-def required_deps(project: Project, stages: dict[str, Any], params: dict[str, Any]) -> dict:
-    """Stage name -> the sorted code deps its command needs (what `write` lists)."""
-    files: dict[str, set[Path]] = {}
-    verbs: dict[str, str] = {}
-    for name, body in _stage_bodies(stages):
-        verb = stage_verb(body.get("cmd", ""))
-        if verb is None:
-            continue
-        verbs[name] = verb
-        files[name] = set(project.command_closure(verb))
-        for section in COMPONENT_SECTIONS.get(verb, ()):
-            files[name] |= component_files(project, params, section)
-    every_stage = set().union(*files.values()) if files else set()
-    for name, verb in verbs.items():
-        if verb == CHECK_VERB:
-            files[name] = every_stage
-    return {name: _dep_entries(project, found) for name, found in files.items()}
+def stage_commands(stages: dict[str, Any], params: dict[str, Any]) -> Iterator[str]:
+    """Every stage instance's command, `foreach` and `matrix` expanded."""
+    for stage in stages.values():
+        if "foreach" in stage:
+            items = [{"item": v} for v in _values(stage["foreach"], params)]
+            cmd = stage["do"]["cmd"]
+        elif "matrix" in stage:
+            axes = {k: _values(v, params) for k, v in stage["matrix"].items()}
+            items = [
+                {f"item.{k}": v for k, v in zip(axes, combo, strict=True)}
+                for combo in itertools.product(*axes.values())
+            ]
+            cmd = stage["cmd"]
+        else:
+            items, cmd = [{}], stage["cmd"]
+        for item in items:
+            yield _VARIABLE.sub(lambda m, item=item: str(item.get(m.group(1), m.group(0))), cmd)
 
 
-def _dep_entries(project: Project, files: set[Path]) -> list[str]:
-    """Sorted relative paths; a directory under src/ whose files are all listed is one entry."""
-    covered = _covered_directories(project, files)
-    entries = {project.relative(d) for d in covered}
-    entries |= {project.relative(f) for f in files if not any(d in f.parents for d in covered)}
-    return sorted(entries)
+def write_stamps(pipeline_path: Path, params_path: Path, code_dir: Path) -> list[Path]:
+    """Write one code stamp per stage kind of the pipeline into `code_dir` (the pipeline's
+    CODE_STAMPS, as the command runs in its directory); remove stale ones."""
+    from oodrl.config import read_params_data
+    from oodrl.fileio import atomic_write_text
+
+    project = Project.of_pipeline(pipeline_path)
+    params = read_params_data(params_path)
+    kinds = {
+        kind
+        for cmd in stage_commands(_load_pipeline(pipeline_path)["stages"], params)
+        if (kind := stage_kind(cmd)) is not None and kind[0] != CHECK_VERB
+    }
+    written = []
+    for verb, name in sorted(kinds, key=str):
+        path = code_dir / Path(stamp_path(verb, name)).name
+        text = stamp_text(project, kind_files(project, verb, name, params))
+        if not path.is_file() or path.read_text() != text:
+            atomic_write_text(path, text)
+        written.append(path)
+    for stale in set(code_dir.glob("*.txt")) - set(written):
+        stale.unlink()  # a component no longer in the benchmark
+    return written
 
 
-def _covered_directories(project: Project, files: set[Path]) -> set[Path]:
-    """The largest directories under src/ (not src itself) whose every file is in `files`."""
-    code_dir = project.root / CODE_DIR
-    candidates = {p for f in files for p in f.parents if code_dir in p.parents}
-    covered = {d for d in candidates if all(f in files for f in _dvc_files(d))}
-    return {d for d in covered if not any(parent in covered for parent in d.parents)}
-
-
-def _dvc_files(directory: Path) -> Iterator[Path]:
-    """The files DVC hashes for a directory dep: .dvcignore keeps __pycache__ and *.pyc out."""
-    for path in directory.rglob("*"):
-        if path.is_file() and "__pycache__" not in path.parts and path.suffix != ".pyc":
-            yield path
-
-
-# -- dvc.yaml ----------------------------------------------------------------------------------
+# -- rendering the template ----------------------------------------------------------------------
 def _yaml():
     from ruamel.yaml import YAML
 
-    # The layout dvc.yaml is written in: a round trip leaves every other byte as it was.
     rt = YAML()
     rt.indent(mapping=2, sequence=4, offset=2)
     rt.width = 4096
     rt.preserve_quotes = True
     return rt
-
-
-def _load_params(path: Path) -> dict[str, Any]:
-    """The params mapping, `extends` chain merged, unvalidated: only `class:` paths are read."""
-    from oodrl.config import read_params_data
-
-    return read_params_data(path)
 
 
 def _load_pipeline(path: Path):
@@ -344,78 +408,106 @@ def _load_pipeline(path: Path):
     return _yaml().load(path.read_text())
 
 
-def _with_code_deps(project: Project, deps: list[str], code: list[str]) -> list[str]:
-    """Data deps as written, then the code deps."""
-    return [d for d in deps if not project.is_code_dep(d)] + code
+def _params_chain(params_path: Path) -> list[Path]:
+    """The params file and the files it `extends`, nearest first."""
+    import yaml
+
+    from oodrl.config import EXTENDS_KEY
+
+    chain = [params_path.resolve()]
+    while True:
+        data = yaml.safe_load(chain[-1].read_text()) if chain[-1].is_file() else None
+        if not isinstance(data, dict) or EXTENDS_KEY not in data:
+            return chain
+        base = (chain[-1].parent / str(data[EXTENDS_KEY])).resolve()
+        if base in chain:
+            return chain
+        chain.append(base)
 
 
-def rendered(pipeline_path: Path, params_path: Path) -> str:
-    """dvc.yaml's text with every stage's code deps set to its command's closure."""
-    document = _load_pipeline(pipeline_path)
-    project = Project.of_pipeline(pipeline_path)
-    stages = document.get("stages", {})
-    required = required_deps(project, stages, _load_params(params_path))
-    for name, body in _stage_bodies(stages):
-        if name not in required:
+def rendered(pipeline_dir: Path, root: Path) -> str:
+    """The dvc.yaml of the pipeline in `pipeline_dir` (the root or an environment's)."""
+    from oodrl.config import read_params_data
+
+    project = Project(root.resolve(), pipeline_dir.resolve())
+    params_path = pipeline_dir / PARAMS_FILE
+    params = read_params_data(params_path)
+    document = _yaml().load(TEMPLATE.read_text())
+    stages = document["stages"]
+    for _, body in _stage_bodies(stages):
+        kind = stage_kind(body["cmd"])
+        if kind is None:
             continue
-        deps = _with_code_deps(project, list(body.get("deps") or []), required[name])
-        if "deps" in body:
+        if kind[0] == CHECK_VERB:
+            code = [project.package_dir, *sorted(plugin_files(project, params))]
             body["deps"].clear()
-            body["deps"].extend(deps)
+            body["deps"].extend(project.relative(p) for p in (*_params_chain(params_path), *code))
         else:
-            body["deps"] = deps
+            deps = body["deps"]
+            deps.insert(deps.index(CHECKED) + 1, stamp_path(*kind))
+    if project.pipeline_dir != project.root:
+        _read_merged_params(stages, params)
     buffer = io.StringIO()
     _yaml().dump(document, buffer)
     return buffer.getvalue()
 
 
-def write(pipeline_path: Path, params_path: Path) -> bool:
-    """Rewrite dvc.yaml's code deps; True if the file changed."""
-    text = rendered(pipeline_path, params_path)
-    if text == pipeline_path.read_text():
-        return False
-    pipeline_path.write_text(text)
-    return True
+def _read_merged_params(stages: dict[str, Any], params: dict[str, Any]) -> None:
+    """An environment's pipeline: stages read params keys from the merged file check_params
+    writes, and fan out over the lists written out (DVC's `${}` reads only the local file)."""
+    for name, stage in stages.items():
+        if "foreach" in stage:
+            stage["foreach"] = _flow(_values(stage["foreach"], params))
+        if "matrix" in stage:
+            for axis, spec in stage["matrix"].items():
+                stage["matrix"][axis] = _flow(_values(spec, params))
+        body = stage["do"] if "foreach" in stage else stage
+        if name == "check_params":
+            body["cmd"] += f" --merged {MERGED_PARAMS}"
+            body["outs"].insert(1, {MERGED_PARAMS: {"persist": True}})
+        elif "params" in body:
+            body["params"] = [{MERGED_PARAMS: list(body["params"])}]
 
 
-def missing_deps(stages: dict[str, Any], required: dict[str, list[str]]) -> list[tuple[str, str]]:
-    """(stage, path) for every required code dep that a stage's listed deps do not cover."""
-    missing = []
-    for name, body in _stage_bodies(stages):
-        listed = [str(dep).rstrip("/") for dep in body.get("deps") or []]
-        for needed in required.get(name, []):
-            if not any(needed == dep or needed.startswith(f"{dep}/") for dep in listed):
-                missing.append((name, needed))
-    return missing
+def _flow(values: list):
+    """A list written on one line, as `[a, b]`."""
+    from ruamel.yaml.comments import CommentedSeq
+
+    seq = CommentedSeq(values)
+    seq.fa.set_flow_style()
+    return seq
 
 
-def stages_and_required(pipeline_path: Path, params_path: Path) -> tuple[dict, dict]:
-    stages = _load_pipeline(pipeline_path).get("stages", {})
+def pipeline_dirs(root: Path) -> list[Path]:
+    """The root, then every environment directory holding a params file."""
+    found = sorted(p.parent for p in (root / ENVIRONMENTS_DIR).glob(f"*/{PARAMS_FILE}"))
+    return [root, *found]
+
+
+def write(root: Path) -> list[Path]:
+    """Write every pipeline's dvc.yaml from the template; the files that changed."""
+    changed = []
+    for directory in pipeline_dirs(root):
+        path, text = directory / "dvc.yaml", rendered(directory, root)
+        if not path.is_file() or path.read_text() != text:
+            path.write_text(text)
+            changed.append(path)
+    return changed
+
+
+def check_pipeline(pipeline_path: Path) -> None:
+    """Raise a one-line ConfigError unless dvc.yaml is what `oodrl pipeline write` writes."""
     project = Project.of_pipeline(pipeline_path)
-    return stages, required_deps(project, stages, _load_params(params_path))
-
-
-def check_coverage(pipeline_path: Path, params_path: Path) -> None:
-    """Raise a one-line ConfigError when a stage's deps miss a file its command can execute."""
-    missing = missing_deps(*stages_and_required(pipeline_path, params_path))
-    if missing:
-        raise ConfigError(_missing_message(pipeline_path, missing))
-
-
-def check(pipeline_path: Path, params_path: Path) -> None:
-    """Raise a one-line ConfigError unless dvc.yaml is exactly what `write` produces."""
-    check_coverage(pipeline_path, params_path)
-    if rendered(pipeline_path, params_path) != pipeline_path.read_text():
+    text = pipeline_path.read_text() if pipeline_path.is_file() else None
+    if rendered(project.pipeline_dir, project.root) != text:
+        where = os.path.relpath(pipeline_path.resolve(), project.root)
         raise ConfigError(
-            f"{pipeline_path}: its code deps list more than the stages' import closures, or "
-            f"in another order; run `oodrl pipeline write` to regenerate them."
+            f"{where} is not what the template {TEMPLATE.name} and its params give; run "
+            f"`oodrl pipeline write` (never edit a generated dvc.yaml by hand)."
         )
 
 
-def _missing_message(pipeline_path: Path, missing: list[tuple[str, str]]) -> str:
-    stage, needed = missing[0]
-    more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
-    return (
-        f"{pipeline_path}: stage {stage} can execute {needed} but does not list it in its "
-        f"deps{more}; run `oodrl pipeline write` to regenerate the code deps."
-    )
+def check(root: Path) -> None:
+    """Raise a one-line ConfigError unless every pipeline's dvc.yaml is up to date."""
+    for directory in pipeline_dirs(root):
+        check_pipeline(directory / "dvc.yaml")

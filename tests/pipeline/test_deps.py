@@ -1,5 +1,6 @@
-"""Every stage's deps cover its command's import closure (SPEC §12): a code edit re-runs
-every stage that can execute the edited file."""
+"""Every pipeline is generated from one template, and every stage's code stamp covers its
+command's import closure (SPEC §12): a code edit re-runs every stage that can execute the
+edited file, and only those."""
 
 from __future__ import annotations
 
@@ -16,90 +17,139 @@ import oodrl
 from oodrl.cli import app
 from oodrl.errors import ConfigError
 from oodrl.pipeline import (
+    MERGED_PARAMS,
     Project,
     check,
-    check_coverage,
-    missing_deps,
+    check_pipeline,
+    kind_files,
     rendered,
-    required_deps,
-    stages_and_required,
+    stage_kind,
     write,
+    write_stamps,
 )
 
 SOURCE_ROOT = Path(oodrl.__file__).resolve().parents[2]  # the checkout the stages import
 
 
-def _closure(repo_root: Path, verb: str) -> set[str]:
-    project = Project(repo_root)
-    return {p.relative_to(repo_root).as_posix() for p in project.command_closure(verb)}
+def _relative(root: Path, files: set[Path]) -> set[str]:
+    return {p.relative_to(root).as_posix() for p in files}
 
 
-# -- the committed dvc.yaml ------------------------------------------------------------------
-def test_committed_dvc_yaml_covers_every_stage_import_closure(repo_root):
-    missing = missing_deps(*stages_and_required(repo_root / "dvc.yaml", repo_root / "params.yaml"))
-    assert missing == [], f"run `oodrl pipeline write`; stage deps miss: {missing}"
+def _files(repo_root: Path, verb: str, name: str | None = None, params=None) -> set[str]:
+    params = params or yaml.safe_load((repo_root / "params.yaml").read_text())
+    return _relative(repo_root, kind_files(Project(repo_root), verb, name, params))
 
 
-def test_committed_dvc_yaml_is_what_pipeline_write_writes(repo_root):
-    text = (repo_root / "dvc.yaml").read_text()
-    assert rendered(repo_root / "dvc.yaml", repo_root / "params.yaml") == text, (
-        "run `oodrl pipeline write`"
-    )
-
-
-@pytest.mark.parametrize(
-    ("stage", "dep"),
-    [
-        ("fit", "src/oodrl/store.py"),  # the store its command reads
-        ("score", "src/oodrl/core/detector.py"),  # BaseDetector.score, through the pickle
-        ("score", "src/oodrl/detectors"),  # unpickling imports the detector's module
-        ("collect_id", "src/oodrl/stages/collect.py"),
-    ],
-)
-def test_a_stage_missing_a_module_its_command_imports_is_reported(repo_root, stage, dep):
-    stages, required = stages_and_required(repo_root / "dvc.yaml", repo_root / "params.yaml")
-    body = stages[stage]["do"] if "foreach" in stages[stage] else stages[stage]
-    (entry,) = [d for d in body["deps"] if dep == d or dep.startswith(f"{d}/")]
-    assert missing_deps(stages, required) == []
-    body["deps"].remove(entry)
-    assert missing_deps(stages, required) == [(stage, entry)]
-
-
-def test_check_stage_reads_every_stage_code(repo_root):
-    stages, required = stages_and_required(repo_root / "dvc.yaml", repo_root / "params.yaml")
-    every = {dep for name, deps in required.items() if name != "check_params" for dep in deps}
-    covered = required["check_params"]
-    assert all(any(d == c or d.startswith(f"{c}/") for c in covered) for d in every)
-    assert "params.yaml" in stages["check_params"]["deps"]
-    assert all("data/params.checked" in deps for deps in _listed_deps(stages, "check_params"))
-
-
-def _listed_deps(stages: dict, skip: str) -> list[list[str]]:
-    return [
-        list((body["do"] if "foreach" in body else body)["deps"])
-        for name, body in stages.items()
-        if name != skip
-    ]
-
-
-def test_pipeline_check_verb_passes_on_the_committed_pipeline(repo_root, monkeypatch):
+# -- the committed pipelines -----------------------------------------------------------------
+def test_committed_pipelines_are_what_pipeline_write_writes(repo_root, monkeypatch):
+    check(repo_root)
     monkeypatch.chdir(repo_root)
     result = CliRunner().invoke(app, ["pipeline", "check"])
     assert result.exit_code == 0, result.output
 
 
+def test_a_hand_edited_pipeline_is_refused(tmp_path, repo_root):
+    (tmp_path / "src").symlink_to(repo_root / "src")
+    shutil.copy(repo_root / "params.yaml", tmp_path / "params.yaml")
+    assert write(tmp_path) == [tmp_path / "dvc.yaml"]
+    check(tmp_path)
+    with (tmp_path / "dvc.yaml").open("a") as pipeline:
+        pipeline.write("# an edit\n")
+    with pytest.raises(ConfigError, match="run `oodrl pipeline write`") as info:
+        check_pipeline(tmp_path / "dvc.yaml")
+    assert "\n" not in str(info.value)
+
+
+def test_every_stage_depends_on_its_code_stamp_and_check_params_on_the_sources(repo_root):
+    stages = yaml.safe_load((repo_root / "dvc.yaml").read_text())["stages"]
+    assert stages["check_params"]["deps"] == ["params.yaml", "src/oodrl"]
+    assert "data/code/fit-${item}.txt" in stages["fit"]["do"]["deps"]
+    assert "data/code/score-${item.detector}.txt" in stages["score"]["deps"]
+    assert "data/code/score-${item}.txt" in stages["score_clean"]["do"]["deps"]
+    assert "data/code/collect-ood-${item}.txt" in stages["collect_sweep"]["do"]["deps"]
+    assert "data/code/metrics.txt" in stages["metrics"]["deps"]
+    deps = [d for s in stages.values() for d in s.get("deps", s.get("do", {}).get("deps", []))]
+    assert not [d for d in deps if d.startswith("src/") and d != "src/oodrl"]
+
+
+# -- environment pipelines ---------------------------------------------------------------------
+@pytest.fixture
+def env_project(tmp_path, repo_root) -> Path:
+    """A project with the shared params and one environment directory extending them."""
+    (tmp_path / "src").symlink_to(repo_root / "src")
+    shutil.copy(repo_root / "params.yaml", tmp_path / "params.yaml")
+    env = tmp_path / "pipeline" / "cartpole"
+    env.mkdir(parents=True)
+    (env / "params.yaml").write_text(
+        "extends: ../../params.yaml\nenv: {id: CartPole-v1, T: 60}\n"
+        "anomaly: {injectors: {action_conditioned_dynamics: {target_action: 1}}}\n"
+    )
+    return tmp_path
+
+
+def test_environment_pipeline_paths_are_relative_to_its_directory(env_project):
+    env = env_project / "pipeline" / "cartpole"
+    assert write(env_project) == [env_project / "dvc.yaml", env / "dvc.yaml"]
+    stages = yaml.safe_load((env / "dvc.yaml").read_text())["stages"]
+    assert stages["check_params"]["deps"] == ["params.yaml", "../../params.yaml", "../../src/oodrl"]
+    assert "--merged data/params.yaml" in stages["check_params"]["cmd"]
+    # DVC reads a key from one file: the merged params check_params writes.
+    assert stages["fit"]["do"]["params"] == [{MERGED_PARAMS: ["detectors.${item}"]}]
+    assert stages["collect_id"]["params"][0][MERGED_PARAMS][:2] == ["seed", "env"]
+    shared = yaml.safe_load((env_project / "params.yaml").read_text())
+    assert stages["fit"]["foreach"] == shared["benchmark"]["detectors"]
+    assert stages["train_policy"]["outs"][0] == {
+        "models/policy.pt": {"cache": False, "persist": True}
+    }
+    check(env_project)
+
+
+def test_a_shared_fan_out_change_makes_environment_pipelines_stale(env_project):
+    write(env_project)
+    shared = yaml.safe_load((env_project / "params.yaml").read_text())
+    shared["benchmark"]["detectors"].remove("pedm")
+    (env_project / "params.yaml").write_text(yaml.safe_dump(shared))
+    check_pipeline(env_project / "dvc.yaml")  # the root fans out over ${benchmark.*}
+    with pytest.raises(ConfigError, match="pipeline/cartpole/dvc.yaml"):
+        check_pipeline(env_project / "pipeline" / "cartpole" / "dvc.yaml")
+
+
+def test_environment_stamps_name_its_adapter(env_project):
+    write(env_project)
+    env = env_project / "pipeline" / "cartpole"
+    stamps = write_stamps(env / "dvc.yaml", env / "params.yaml", env / "data" / "code")
+    collect = (env / "data" / "code" / "collect-id.txt").read_text()
+    assert "  ../../src/oodrl/envs/classic_control.py\n" in collect
+    assert "lunar_lander.py" not in collect
+    assert len(stamps) == len({p.name for p in stamps})
+
+
 # -- the closure -----------------------------------------------------------------------------
 def test_closures_follow_the_verb_not_the_whole_cli(repo_root):
-    collect = _closure(repo_root, "collect-id")
+    collect = _files(repo_root, "collect-id")
     assert "src/oodrl/stages/collect.py" in collect
     assert not {"src/oodrl/stages/fit.py", "src/oodrl/stages/metrics.py"} & collect
-    metrics = _closure(repo_root, "metrics")
+    metrics = _files(repo_root, "metrics")
     assert "src/oodrl/metrics/aggregate.py" in metrics  # imported inside functions only
     assert "src/oodrl/stages/collect.py" not in metrics
-    score = _closure(repo_root, "score")
-    assert {"src/oodrl/store.py", "src/oodrl/core/detector.py", "src/oodrl/detectors/kde.py"} <= (
-        score
-    )
+
+
+def test_a_stage_lists_only_the_components_it_builds(repo_root):
+    """fit/score of kde: kde's module, no other detector; collection: its injector's module
+    and the environment's adapter; metrics: no detector or injector module at all."""
+    for verb in ("fit", "score"):
+        files = _files(repo_root, verb, "kde_density")
+        assert {"src/oodrl/detectors/kde.py", "src/oodrl/core/detector.py"} <= files
+        assert "src/oodrl/store.py" in files
+        assert not {"src/oodrl/detectors/pedm.py", "src/oodrl/detectors/cusum.py"} & files
+    posthoc = _files(repo_root, "collect-ood", "observation_delay")
+    assert {"src/oodrl/injectors/posthoc.py", "src/oodrl/envs/lunar_lander.py"} <= posthoc
+    assert "src/oodrl/envs/mujoco.py" not in posthoc
+    online = _files(repo_root, "collect-ood", "stuck_actuator")
+    assert "src/oodrl/injectors/online.py" in online
+    metrics = _files(repo_root, "metrics")
+    assert not [f for f in metrics if f.startswith(("src/oodrl/detectors/", "src/oodrl/inj"))
+                and not f.endswith("__init__.py")]  # fmt: skip
 
 
 def test_closure_counts_nested_imports_parents_and_import_path_strings(tmp_path):
@@ -116,23 +166,15 @@ def test_closure_counts_nested_imports_parents_and_import_path_strings(tmp_path)
     for name, text in files.items():
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_text(text)
-    found = {p.relative_to(tmp_path).as_posix() for p in Project(tmp_path).closure(["demo.a"])}
+    found = _relative(tmp_path, Project(tmp_path).closure(["demo.a"]))
     assert found == set(files) - {"src/demo/unused.py"}
 
 
-def test_pipeline_in_a_subdirectory_lists_code_relative_to_itself(tmp_path, repo_root):
-    """A per-environment dvc.yaml (SPEC §12) below the project root, as DVC reads its paths."""
-    (tmp_path / "src").symlink_to(repo_root / "src")
-    sub = tmp_path / "envs" / "demo"
-    sub.mkdir(parents=True)
-    stage = {"cmd": "oodrl fit x --id data/id.zarr --out x.pkl", "deps": ["data/id.zarr"]}
-    (sub / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"fit": stage}}))
-    (sub / "params.yaml").write_text("seed: 0\n")
-    assert write(sub / "dvc.yaml", sub / "params.yaml")
-    deps = yaml.safe_load((sub / "dvc.yaml").read_text())["stages"]["fit"]["deps"]
-    assert deps[0] == "data/id.zarr" and "../../src/oodrl/stages/fit.py" in deps
-    check(sub / "dvc.yaml", sub / "params.yaml")
-    assert not write(sub / "dvc.yaml", sub / "params.yaml")
+def test_stage_kind_names_the_component_its_command_builds():
+    assert stage_kind("oodrl fit ${item} --id data/id.zarr --out x.pkl") == ("fit", "${item}")
+    assert stage_kind("oodrl score kde --injector x --model m") == ("score", "kde")
+    assert stage_kind("oodrl collect-id --policy p --out o") == ("collect-id", None)
+    assert stage_kind("python script.py") is None
 
 
 # -- plugins named in params -----------------------------------------------------------------
@@ -148,7 +190,6 @@ class Speed(BaseDetector): ...
 def plugin_project(tmp_path, repo_root) -> Path:
     """A project whose params name a detector plugin beside params.yaml."""
     (tmp_path / "src").symlink_to(repo_root / "src")
-    shutil.copy(repo_root / "dvc.yaml", tmp_path / "dvc.yaml")
     (tmp_path / "speed_plugin.py").write_text(PLUGIN)
     (tmp_path / "plugin_helpers.py").write_text("")
     params = yaml.safe_load((repo_root / "params.yaml").read_text())
@@ -158,56 +199,52 @@ def plugin_project(tmp_path, repo_root) -> Path:
     return tmp_path
 
 
-def test_plugin_is_a_dep_of_the_stages_that_build_it(plugin_project):
-    stages, _ = stages_and_required(plugin_project / "dvc.yaml", plugin_project / "params.yaml")
+def test_plugin_is_in_the_stamps_of_the_stages_that_build_it(plugin_project):
     params = yaml.safe_load((plugin_project / "params.yaml").read_text())
-    required = required_deps(Project(plugin_project), stages, params)
     plugin = {"speed_plugin.py", "plugin_helpers.py"}
-    for stage in ("fit", "score_clean", "score", "check_params"):
-        assert plugin <= set(required[stage]), stage
-    for stage in ("collect_id", "collect_ood", "metrics", "render"):
-        assert not plugin & set(required[stage]), stage
+    for verb in ("fit", "score"):
+        assert plugin <= _files(plugin_project, verb, "speed", params), verb
+    assert not plugin & _files(plugin_project, "fit", "kde_density", params)
+    assert not plugin & _files(plugin_project, "collect-ood", "stuck_actuator", params)
 
 
-def test_dvc_yaml_missing_a_plugin_is_refused_until_rewritten(plugin_project):
-    pipeline, params = plugin_project / "dvc.yaml", plugin_project / "params.yaml"
-    with pytest.raises(ConfigError) as info:
-        check_coverage(pipeline, params)
-    message = str(info.value)
-    assert "\n" not in message
-    assert "plugin_helpers.py" in message or "speed_plugin.py" in message
-    assert "`oodrl pipeline write`" in message
-    assert write(pipeline, params)
-    check_coverage(pipeline, params)
-    fit = yaml.safe_load(pipeline.read_text())["stages"]["fit"]["do"]["deps"]
-    assert {"speed_plugin.py", "plugin_helpers.py"} <= set(fit)
+def test_plugin_is_a_dep_of_check_params_once_written(plugin_project):
+    text = rendered(plugin_project, plugin_project)
+    deps = yaml.safe_load(text)["stages"]["check_params"]["deps"]
+    assert deps == ["params.yaml", "src/oodrl", "plugin_helpers.py", "speed_plugin.py"]
+    (plugin_project / "dvc.yaml").write_text(text.replace("  - plugin_helpers.py\n", ""))
+    with pytest.raises(ConfigError, match="oodrl pipeline write"):
+        check(plugin_project)
 
 
 # -- what the stage commands really import ---------------------------------------------------
 @pytest.mark.slow
-def test_stage_commands_import_only_modules_their_deps_list(built_repo):
-    """Every oodrl file loaded by a stage command during the build is covered by its deps."""
+def test_stage_commands_import_only_modules_their_stamps_list(built_repo):
+    """Every oodrl file loaded by a stage command during the build is listed in its stamp."""
     from dvc.repo import Repo
 
     with Repo(str(built_repo)) as dvc:
-        stages = {
-            tuple(shlex.split(stage.cmd)[1:]): (stage.name, [str(d.def_path) for d in stage.deps])
-            for stage in dvc.index.stages
-        }
+        commands = {tuple(shlex.split(s.cmd)[1:]): s.name for s in dvc.index.stages}
     package = SOURCE_ROOT / "src" / "oodrl"
     checked = set()
     for record_path in sorted((built_repo.parent / "import-trace").glob("*.json")):
         record = json.loads(record_path.read_text())
-        if tuple(record["argv"][1:]) not in stages or not record["argv"][0].endswith("oodrl"):
+        argv = tuple(record["argv"][1:])
+        if argv not in commands or not record["argv"][0].endswith("oodrl"):
             continue
-        name, deps = stages[tuple(record["argv"][1:])]
+        name = commands[argv]
         loaded = {
             Path(f).relative_to(SOURCE_ROOT).as_posix()
             for f in record["files"]
             if Path(f).is_relative_to(package)
         }
-        uncovered = [f for f in loaded if not any(f == d or f.startswith(f"{d}/") for d in deps)]
-        assert uncovered == [], f"{name} imported {uncovered} without listing them"
+        if name == "check_params":
+            listed = {p.relative_to(SOURCE_ROOT).as_posix() for p in package.rglob("*.py")}
+        else:
+            verb, component = stage_kind(shlex.join(["oodrl", *argv]))
+            stamp = built_repo / "data" / "code" / f"{verb}{f'-{component}' * bool(component)}.txt"
+            listed = {line.split("  ", 1)[1] for line in stamp.read_text().splitlines()}
+        assert sorted(loaded - listed) == [], f"{name} imported files its stamp does not list"
         checked.add(name.split("@")[0])
     assert {"check_params", "collect_id", "collect_ood", "fit", "score", "metrics", "render"} <= (
         checked

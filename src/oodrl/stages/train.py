@@ -1,4 +1,4 @@
-"""The train_policy stage: NoisyNet double DQN on the flat state (SPEC §2).
+"""The train_policy stage: NoisyNet double DQN, or SAC for continuous control (SPEC §2, §11).
 
 The trained policy is committed (models/policy.pt and its report), and training takes 13
 minutes, so the stage trains only on purpose: with OODRL_RETRAIN_POLICY=1 in its environment.
@@ -32,9 +32,23 @@ def train_policy(params: Params, out: Path, report: Path, retrain: bool) -> dict
     config = params.policy_train_config()
     if not retrain:
         return kept_policy(config.as_dict(), out, report)
-    from oodrl.policies.train import train
+    return trainer(config)(config, out, report, progress=progress_enabled(params.executor.progress))
 
-    return train(config, out, report, progress=progress_enabled(params.executor.progress))
+
+def trainer(config):
+    """The training function of a `policy.train` settings type: the NoisyNet DQN (discrete
+    actions) or SAC (continuous control; imports Stable-Baselines3 only when it trains)."""
+    from oodrl.policies.settings import SacConfig, TrainConfig
+
+    if isinstance(config, TrainConfig):
+        from oodrl.policies.train import train
+
+        return train
+    if isinstance(config, SacConfig):
+        from oodrl.policies.sac import train_sac
+
+        return train_sac
+    raise ConfigError(f"policy.train: no trainer for {type(config).__name__}.")
 
 
 def kept_policy(settings: dict[str, Any], out: Path, report: Path) -> dict[str, Any]:
