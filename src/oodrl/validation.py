@@ -67,7 +67,7 @@ class Options:
 
 
 @dataclass(frozen=True)
-class Sequence:
+class SequenceOf:
     """A non-empty list whose every item satisfies `item`."""
 
     item: Callable[[Any], bool]

@@ -22,8 +22,7 @@ from oodrl.detectors.features import (
     stacked,
     trajectory_features,
 )
-from oodrl.validation import Interval
-from oodrl.validation import Sequence as SequenceOf
+from oodrl.validation import Interval, SequenceOf
 
 #: Rows per forward pass when scoring: bounds memory on long score batches, and keeps a chunk's
 #: temporaries small enough for the CPU caches.
