@@ -39,17 +39,24 @@ def _settings(params: Params):
     )
 
 
+#: Metrics whose per-episode values headline records keep, for the suite's leaderboard
+#: (its stratified bootstrap resamples the episodes of every cell).
+EPISODE_METRICS = ("matched_auroc",)
+
+
 def _summary(
     group: dict, clean: np.ndarray, threshold: float, spec: dict, settings, detector, latency
-):
-    """Mean, std and CI of every metric for one perturbed set against its matched clean set."""
+) -> tuple[dict, dict[str, list[float]]]:
+    """Mean, std and CI of every metric for one perturbed set against its matched clean set,
+    and the per-episode values of EPISODE_METRICS."""
     from oodrl.metrics.aggregate import episode_metrics, summarise
 
     per_episode = episode_metrics(
         group["scores"], clean, group["labels"], threshold,
         spec["onset"], spec["offset"], settings, detector, latency,
     )  # fmt: skip
-    return summarise(per_episode, settings)
+    kept = {m: [round(float(v), 6) + 0.0 for v in per_episode[m]] for m in EPISODE_METRICS}
+    return summarise(per_episode, settings), kept
 
 
 def _null_metrics(params: Params, clean: np.ndarray, threshold: float, settings, detector, latency):
@@ -78,16 +85,16 @@ def _detector_results(params: Params, scores_dir: Path, detector: str):
         path = score_store(scores_dir, detector, injector)
         groups, attrs = read_scores(path, stage=f"score@{detector}-{injector}")
         spec, modes[injector] = attrs["spec"], attrs["mode"]
-        headline = _summary(
+        headline, episodes = _summary(
             groups[HEADLINE_GROUP], clean, threshold, spec, settings, detector, latency
         )
         records.append({
             "kind": "anomaly", "detector": detector, "anomaly": injector,
             "mode": attrs["mode"], "severity": spec["severity"], "latency": latency,
-            "metrics": headline,
+            "metrics": headline, "episodes": episodes,
         })  # fmt: skip
         for severity in attrs["severities"]:
-            sweep[(injector, float(severity))] = _summary(
+            sweep[(injector, float(severity))], _ = _summary(
                 groups[severity_key(severity)], clean, threshold,
                 {**spec, "severity": severity}, settings, detector, latency,
             )  # fmt: skip
