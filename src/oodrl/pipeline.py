@@ -498,13 +498,24 @@ def write(root: Path) -> list[Path]:
 def check_pipeline(pipeline_path: Path) -> None:
     """Raise a one-line ConfigError unless dvc.yaml is what `oodrl pipeline write` writes."""
     project = Project.of_pipeline(pipeline_path)
-    text = pipeline_path.read_text() if pipeline_path.is_file() else None
-    if rendered(project.pipeline_dir, project.root) != text:
+    text = pipeline_path.read_text() if pipeline_path.is_file() else ""
+    expected = rendered(project.pipeline_dir, project.root)
+    if expected != text:
         where = os.path.relpath(pipeline_path.resolve(), project.root)
         raise ConfigError(
-            f"{where} is not what the template {TEMPLATE.name} and its params give; run "
-            f"`oodrl pipeline write` (never edit a generated dvc.yaml by hand)."
+            f"{where} is not what the template {TEMPLATE.name} and its params give "
+            f"({_first_difference(expected, text)}); run `oodrl pipeline write` "
+            f"(never edit a generated dvc.yaml by hand)."
         )
+
+
+def _first_difference(expected: str, text: str) -> str:
+    """The first line one text has and the other lacks, e.g. a plugin file params now name."""
+    missing = [line for line in expected.splitlines() if line not in text.splitlines()]
+    if missing:
+        return f"missing {missing[0].strip()!r}"
+    extra = [line for line in text.splitlines() if line not in expected.splitlines()]
+    return f"unexpected {extra[0].strip()!r}" if extra else "lines in another order"
 
 
 def check(root: Path) -> None:
