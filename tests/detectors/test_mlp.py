@@ -150,7 +150,7 @@ def test_training_is_seeded_and_reduces_the_loss(loss):
     targets = np.tanh(inputs @ rng.standard_normal((3, 2)))
     n_out = 2 if loss == "mse" else 4
     loss_fn = {"mse": mlp.mse, "gaussian_nll": mlp.gaussian_nll}[loss]
-    settings = mlp.TrainSettings(epochs=15, batch_size=32, lr=1e-2)
+    settings = mlp.OptimiserSettings(epochs=15, batch_size=32, lr=1e-2)
 
     def fit(seed: int) -> tuple[mlp.EnsembleWeights, list[float]]:
         generator = np.random.default_rng(seed)

@@ -15,7 +15,7 @@ from torch import nn
 
 from oodrl.core.detector import BaseDetector
 from oodrl.detectors import DETECTORS, neural
-from oodrl.detectors.features import increments, stacked
+from oodrl.detectors.features import increments, stacked, stacked_features
 from oodrl.detectors.mlp import (
     MAX_LOGVAR,
     MIN_LOGVAR,
@@ -125,7 +125,9 @@ def test_chunked_scores_do_not_depend_on_the_chunk_size(monkeypatch):
 
 
 def pedm_reference(detector: BaseDetector, trajectories: list) -> torch.Tensor:
-    inputs = detector.input_standardizer_.transform(stacked(trajectories, detector._inputs))
+    inputs = detector.input_standardizer_.transform(
+        stacked_features(trajectories, "state_action", detector.action_encoding_)
+    )
     targets = torch.as_tensor(
         detector.target_standardizer_.transform(stacked(trajectories, increments))
     )
@@ -139,13 +141,17 @@ def pedm_reference(detector: BaseDetector, trajectories: list) -> torch.Tensor:
 
 
 def autoencoder_reference(detector: BaseDetector, trajectories: list) -> torch.Tensor:
-    z = detector.standardizer_.transform(stacked(trajectories, detector._features))
+    z = detector.standardizer_.transform(
+        stacked_features(trajectories, detector.features, detector.action_encoding_)
+    )
     outputs = torch_outputs(detector.weights_, z)
     return ((outputs[0] - torch.as_tensor(z)) ** 2).sum(dim=-1)
 
 
 def ensemble_disagreement_reference(detector: BaseDetector, trajectories: list) -> torch.Tensor:
-    inputs = detector.input_standardizer_.transform(stacked(trajectories, detector._inputs))
+    inputs = detector.input_standardizer_.transform(
+        stacked_features(trajectories, "state_action", detector.action_encoding_)
+    )
     outputs = torch_outputs(detector.weights_, inputs)
     spread = outputs - outputs.mean(dim=0, keepdim=True)
     return (spread**2).sum(dim=-1).mean(dim=0)

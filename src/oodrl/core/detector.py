@@ -4,6 +4,12 @@ Score direction: a larger score means more anomalous, for every detector.
 Subclasses implement `_fit` and one of `_score` (one trajectory) or `_score_many` (a batch);
 the base class owns `fit`, `calibrate`, `score`, the threshold rules and the alarms,
 so no detector can forget its threshold or mutate itself while scoring.
+
+Parameters are keyword-only dataclass fields (`@detector_parameters`): the generated `__init__`
+stores each keyword argument under its own name and does nothing else, which is scikit-learn's
+contract, so `get_params` (it reads the signature), `from_params` and validation work unchanged.
+A plugin may instead write an `__init__(self, *, my_param=..., **base)` that calls
+`super().__init__(**base)` and stores its arguments.
 """
 
 from __future__ import annotations
@@ -11,7 +17,7 @@ from __future__ import annotations
 from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -20,6 +26,11 @@ from oodrl.errors import ContractError, DetectorError, NotFittedError
 from oodrl.validation import Component, Interval, Options
 
 THRESHOLD_RULES = ("percentile", "max")
+
+#: Declares a detector class's parameters as keyword-only fields. Equality stays identity (as
+#: for any estimator: two equal-parameter detectors fitted on different data are not equal) and
+#: the repr stays Component's, which lists `get_params()`.
+detector_parameters = dataclass(kw_only=True, eq=False, repr=False)
 
 
 @dataclass(frozen=True, eq=False)
@@ -53,10 +64,13 @@ def threshold_from_scores(scores: np.ndarray, rule: str, percentile: float) -> f
     return float(np.percentile(scores, percentile))
 
 
+@detector_parameters
 class BaseDetector(Component):
     """Fit once on in-distribution trajectories, calibrate on held-out ones, then score.
 
     Learned state ends in `_` (`state_dim_`, `threshold_`): `state_dim_` set means fitted.
+    `name` is the detector's one name (its registry name; a class that declares none is named
+    after itself): errors say it, and the pipeline's params key is the stage's to say.
     """
 
     name: ClassVar[str] = ""
@@ -69,16 +83,14 @@ class BaseDetector(Component):
         "seed": [Interval(int, 0, None)],
     }
 
-    def __init__(
-        self,
-        *,
-        threshold_rule: str = "percentile",
-        threshold_percentile: float = 99.0,
-        seed: int = 0,
-    ) -> None:
-        self.threshold_rule = threshold_rule
-        self.threshold_percentile = threshold_percentile
-        self.seed = seed
+    threshold_rule: str = "percentile"
+    threshold_percentile: float = 99.0
+    seed: int = 0
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "name" not in cls.__dict__:
+            cls.name = cls.__name__
 
     # -- what subclasses write -------------------------------------------------------------
     @abstractmethod
@@ -94,10 +106,6 @@ class BaseDetector(Component):
         return [self._score(t) for t in trajectories]
 
     # -- the public contract ---------------------------------------------------------------
-    @property
-    def detector_name(self) -> str:
-        return self.name or type(self).__name__
-
     @property
     def latency(self) -> int:
         """How many steps of the future the score at t uses: z_t is known at step t + latency.
@@ -117,10 +125,10 @@ class BaseDetector(Component):
         self.validate_params()
         trajectories = list(trajectories)
         if not trajectories:
-            raise ContractError(f"{self.detector_name}.fit needs at least one trajectory.")
+            raise ContractError(f"{self.name}.fit needs at least one trajectory.")
         dims = {t.state_dim for t in trajectories}
         if len(dims) != 1:
-            raise ContractError(f"{self.detector_name}.fit got mixed state dimensions {dims}.")
+            raise ContractError(f"{self.name}.fit got mixed state dimensions {dims}.")
         self.state_dim_ = dims.pop()
         self._fit(trajectories)
         return self
@@ -145,13 +153,13 @@ class BaseDetector(Component):
 
     def _checked_scores(self, trajectories: list[Trajectory]) -> list[DetectorOutput]:
         if not hasattr(self, "state_dim_"):
-            raise NotFittedError(f"{self.detector_name} is not fitted: call fit() before scoring.")
+            raise NotFittedError(f"{self.name} is not fitted: call fit() before scoring.")
         if not trajectories:
             return []
         for t in trajectories:
             if t.state_dim != self.state_dim_:
                 raise ContractError(
-                    f"{self.detector_name} was fitted on state dimension {self.state_dim_}; "
+                    f"{self.name} was fitted on state dimension {self.state_dim_}; "
                     f"got a trajectory with state dimension {t.state_dim}."
                 )
         outputs = []
@@ -161,7 +169,7 @@ class BaseDetector(Component):
             scores = np.asarray(raw, dtype=np.float64)
             if scores.shape != (t.T,) or not np.isfinite(scores).all():
                 raise DetectorError(
-                    f"Detector '{self.detector_name}' returned invalid scores for trajectory "
+                    f"Detector '{self.name}' returned invalid scores for trajectory "
                     f"{index} (shape {scores.shape}, expected ({t.T},), finite)."
                 )
             outputs.append(DetectorOutput(scores))

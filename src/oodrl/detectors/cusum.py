@@ -32,7 +32,7 @@ from typing import ClassVar
 import numpy as np
 
 from oodrl import numerics
-from oodrl.core.detector import BaseDetector
+from oodrl.core.detector import BaseDetector, detector_parameters
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
     ActionEncoding,
@@ -40,7 +40,7 @@ from oodrl.detectors.features import (
     increments,
     split_scores,
     stacked,
-    trajectory_features,
+    stacked_features,
 )
 from oodrl.validation import Interval, IsType, Options
 
@@ -87,7 +87,7 @@ class TransitionResidual:
     @classmethod
     def fit(cls, trajectories: Sequence[Trajectory], ridge: float) -> TransitionResidual:
         encoding = ActionEncoding.fit(trajectories)
-        inputs = stacked(trajectories, lambda t: _state_action(t, encoding))
+        inputs = stacked_features(trajectories, "state_action", encoding)
         deltas = stacked(trajectories, increments)
         input_standardizer, target_standardizer = Standardizer.fit(inputs), Standardizer.fit(deltas)
         model = LinearResidualModel.fit(
@@ -97,14 +97,10 @@ class TransitionResidual:
 
     def __call__(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
         x = self.inputs.transform(
-            stacked(trajectories, lambda t: _state_action(t, self.action_encoding))
+            stacked_features(trajectories, "state_action", self.action_encoding)
         )
         y = self.targets.transform(stacked(trajectories, increments))
         return self.model.residual(x, y)
-
-
-def _state_action(trajectory: Trajectory, encoding: ActionEncoding) -> np.ndarray:
-    return trajectory_features(trajectory, "state_action", encoding)
 
 
 @dataclass(frozen=True)
@@ -141,6 +137,7 @@ def cusum(drift: np.ndarray, restarts: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
+@detector_parameters
 class Cusum(BaseDetector):
     """One-sided CUSUM of a standardised residual: a transition residual or a state distance.
 
@@ -167,24 +164,10 @@ class Cusum(BaseDetector):
         "reset_on_done": [IsType(bool)],
     }
 
-    def __init__(
-        self,
-        *,
-        residual: str = "transition",
-        ridge: float = 1e-3,
-        slack: float = 0.5,
-        reset_on_done: bool = False,
-        threshold_rule: str = "percentile",
-        threshold_percentile: float = 99.0,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(
-            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
-        )
-        self.residual = residual
-        self.ridge = ridge
-        self.slack = slack
-        self.reset_on_done = reset_on_done
+    residual: str = "transition"
+    ridge: float = 1e-3
+    slack: float = 0.5
+    reset_on_done: bool = False
 
     @property
     def latency(self) -> int:

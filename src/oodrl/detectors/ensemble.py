@@ -21,15 +21,14 @@ from typing import ClassVar
 
 import numpy as np
 
+from oodrl.core.detector import detector_parameters
 from oodrl.core.trajectory import Trajectory
-from oodrl.detectors.features import (
-    split_scores,
-    stacked,
-)
+from oodrl.detectors.features import split_scores
 from oodrl.detectors.neural import TransitionEnsemble, chunked_scores
 from oodrl.validation import Interval
 
 
+@detector_parameters
 class EnsembleDisagreement(TransitionEnsemble):
     """Mean squared deviation of M bootstrapped transition predictors from their mean.
 
@@ -49,32 +48,11 @@ class EnsembleDisagreement(TransitionEnsemble):
         "n_members": [Interval(int, 2, None)],
     }
 
-    def __init__(
-        self,
-        *,
-        n_members: int = 5,
-        hidden_sizes: Sequence[int] = (64, 64),
-        epochs: int = 30,
-        batch_size: int = 256,
-        lr: float = 1e-3,
-        threshold_rule: str = "percentile",
-        threshold_percentile: float = 99.0,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(
-            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
-        )
-        self.n_members = n_members
-        self.hidden_sizes = hidden_sizes
-        self.epochs = epochs
-        self.batch_size = batch_size
-        self.lr = lr
-
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
         self._fit_ensemble(trajectories, "mse", outputs_per_coordinate=1, bootstrap=True)
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
-        inputs = self.input_standardizer_.transform(stacked(trajectories, self._inputs))
+        inputs = self._standardized_inputs(trajectories)
 
         def disagreement(outputs: np.ndarray, rows: slice) -> np.ndarray:
             spread = outputs - outputs.mean(axis=0, keepdims=True)

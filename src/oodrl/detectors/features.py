@@ -20,12 +20,15 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
 from oodrl import numerics
+from oodrl.core.detector import BaseDetector, detector_parameters
 from oodrl.core.trajectory import Trajectory
 from oodrl.errors import ContractError
+from oodrl.validation import Options
 
 FEATURE_SETS = ("state", "state_action", "transition")
 
@@ -97,6 +100,13 @@ def stacked(
     return np.concatenate([per_trajectory(t) for t in trajectories], axis=0)
 
 
+def stacked_features(
+    trajectories: Sequence[Trajectory], feature_set: str, encoding: ActionEncoding
+) -> np.ndarray:
+    """The (ΣT_i, d) float64 features of a feature set, trajectory after trajectory."""
+    return stacked(trajectories, lambda t: trajectory_features(t, feature_set, encoding))
+
+
 def split_scores(scores: np.ndarray, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
     """Undo `stacked` for a (sum T_i,) score vector: one array per trajectory."""
     return np.split(scores, np.cumsum([t.T for t in trajectories])[:-1])
@@ -148,3 +158,32 @@ class GaussianModel:
         """(x − μ)ᵀ P (x − μ) for every row of x."""
         centred = x - self.mean
         return (numerics.matmul(centred, self.precision) * centred).sum(axis=1)
+
+
+@detector_parameters
+class FeatureSetDetector(BaseDetector):
+    """A detector of the standardised step features of one feature set (its `features`).
+
+    `_fit_features` learns the action encoding and the standardisation on the fit set;
+    `_standardized_features` applies them to the trajectories being scored.
+    """
+
+    _parameter_constraints: ClassVar[dict[str, list]] = {"features": [Options(FEATURE_SETS)]}
+
+    features: str = "state"
+
+    @property
+    def latency(self) -> int:
+        # "transition" features hold the increment s_{t+1} − s_t: known one step after t.
+        return int(self.features == "transition")
+
+    def _fit_features(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
+        """The fit set's standardised features; sets `action_encoding_` and `standardizer_`."""
+        self.action_encoding_ = ActionEncoding.fit(trajectories)
+        x = stacked_features(trajectories, self.features, self.action_encoding_)
+        self.standardizer_ = Standardizer.fit(x)
+        return self.standardizer_.transform(x)
+
+    def _standardized_features(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
+        x = stacked_features(trajectories, self.features, self.action_encoding_)
+        return self.standardizer_.transform(x)

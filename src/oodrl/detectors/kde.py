@@ -25,17 +25,9 @@ from typing import ClassVar
 import numpy as np
 
 from oodrl import numerics
-from oodrl.core.detector import BaseDetector
+from oodrl.core.detector import detector_parameters
 from oodrl.core.trajectory import Trajectory
-from oodrl.detectors.features import (
-    FEATURE_SETS,
-    ActionEncoding,
-    Standardizer,
-    seeded_subsample,
-    split_scores,
-    stacked,
-    trajectory_features,
-)
+from oodrl.detectors.features import FeatureSetDetector, seeded_subsample, split_scores
 from oodrl.validation import Interval, Options
 
 BANDWIDTH_RULES = ("scott", "silverman")
@@ -113,7 +105,8 @@ def _exponents(
     return numerics.matmul(block, scaled_reference_t) - reference_term
 
 
-class KdeDensity(BaseDetector):
+@detector_parameters
+class KdeDensity(FeatureSetDetector):
     """Negative log Gaussian-kernel density of standardised step features.
 
     Parameters
@@ -129,49 +122,22 @@ class KdeDensity(BaseDetector):
     name: ClassVar[str] = "kde_density"
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
-        "features": [Options(FEATURE_SETS)],
         "bandwidth": [Options(BANDWIDTH_RULES), Interval(float, 0, None, closed="neither")],
         "max_reference": [Interval(int, 1, None)],
         "epsilon": [Interval(float, 0, None)],
     }
 
-    def __init__(
-        self,
-        *,
-        features: str = "state",
-        bandwidth: str | float = "scott",
-        max_reference: int = 4096,
-        epsilon: float = 0.0,
-        threshold_rule: str = "percentile",
-        threshold_percentile: float = 99.0,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(
-            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
-        )
-        self.features = features
-        self.bandwidth = bandwidth
-        self.max_reference = max_reference
-        self.epsilon = epsilon
-
-    @property
-    def latency(self) -> int:
-        # "transition" features hold the increment s_{t+1} − s_t: known one step after t.
-        return int(self.features == "transition")
-
-    def _features(self, trajectory: Trajectory) -> np.ndarray:
-        return trajectory_features(trajectory, self.features, self.action_encoding_)
+    bandwidth: str | float = "scott"
+    max_reference: int = 4096
+    epsilon: float = 0.0
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
-        self.action_encoding_ = ActionEncoding.fit(trajectories)
-        x = stacked(trajectories, self._features)
-        self.standardizer_ = Standardizer.fit(x)
-        keep = seeded_subsample(len(x), self.max_reference, self.seed)
-        self.reference_ = self.standardizer_.transform(x[keep])
+        z = self._fit_features(trajectories)
+        self.reference_ = z[seeded_subsample(len(z), self.max_reference, self.seed)]
         self.bandwidth_ = bandwidth_of(self.bandwidth, *self.reference_.shape)
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
-        x = self.standardizer_.transform(stacked(trajectories, self._features))
+        x = self._standardized_features(trajectories)
         log_density = gaussian_kde_logpdf(x, self.reference_, self.bandwidth_)
         if self.epsilon > 0:
             # log(p + ε) = log ε + softplus(log p − log ε), machine-independent.

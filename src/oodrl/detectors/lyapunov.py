@@ -32,7 +32,7 @@ from typing import ClassVar
 import numpy as np
 
 from oodrl import numerics
-from oodrl.core.detector import BaseDetector
+from oodrl.core.detector import BaseDetector, detector_parameters
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import Standardizer, seeded_subsample, split_scores
 from oodrl.errors import ContractError
@@ -83,6 +83,7 @@ def episode_embedding(
     )
 
 
+@detector_parameters
 class LyapunovDivergence(BaseDetector):
     """Mean log growth of the distance to the nearest ID neighbour over a short horizon.
 
@@ -110,26 +111,11 @@ class LyapunovDivergence(BaseDetector):
         "max_reference": [Interval(int, 1, None)],
     }
 
-    def __init__(
-        self,
-        *,
-        embedding_dim: int = 2,
-        lag: int = 1,
-        horizon: int = 5,
-        epsilon: float = 1e-3,
-        max_reference: int = 4096,
-        threshold_rule: str = "percentile",
-        threshold_percentile: float = 99.0,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(
-            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
-        )
-        self.embedding_dim = embedding_dim
-        self.lag = lag
-        self.horizon = horizon
-        self.epsilon = epsilon
-        self.max_reference = max_reference
+    embedding_dim: int = 2
+    lag: int = 1
+    horizon: int = 5
+    epsilon: float = 1e-3
+    max_reference: int = 4096
 
     @property
     def latency(self) -> int:
@@ -147,7 +133,7 @@ class LyapunovDivergence(BaseDetector):
         candidates = np.flatnonzero(embedding.steps_left >= self.horizon)
         if candidates.size == 0:
             raise ContractError(
-                f"{self.detector_name} found no fit step with {self.horizon} steps left in its "
+                f"{self.name} found no fit step with {self.horizon} steps left in its "
                 "episode; lower 'horizon' or fit on longer episodes."
             )
         anchors = candidates[seeded_subsample(len(candidates), self.max_reference, self.seed)]

@@ -14,21 +14,14 @@ from typing import ClassVar
 
 import numpy as np
 
-from oodrl.core.detector import BaseDetector
+from oodrl.core.detector import detector_parameters
 from oodrl.core.trajectory import Trajectory
-from oodrl.detectors.features import (
-    FEATURE_SETS,
-    ActionEncoding,
-    GaussianModel,
-    Standardizer,
-    split_scores,
-    stacked,
-    trajectory_features,
-)
-from oodrl.validation import Interval, Options
+from oodrl.detectors.features import FeatureSetDetector, GaussianModel, split_scores
+from oodrl.validation import Interval
 
 
-class MahalanobisDistance(BaseDetector):
+@detector_parameters
+class MahalanobisDistance(FeatureSetDetector):
     """Squared Mahalanobis distance of standardised step features from the fit distribution.
 
     Parameters
@@ -42,39 +35,14 @@ class MahalanobisDistance(BaseDetector):
     name: ClassVar[str] = "mahalanobis_distance"
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
-        "features": [Options(FEATURE_SETS)],
         "ridge": [Interval(float, 0, None, closed="neither")],
     }
 
-    def __init__(
-        self,
-        *,
-        features: str = "state",
-        ridge: float = 1e-3,
-        threshold_rule: str = "percentile",
-        threshold_percentile: float = 99.0,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(
-            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
-        )
-        self.features = features
-        self.ridge = ridge
-
-    @property
-    def latency(self) -> int:
-        # "transition" features hold the increment s_{t+1} − s_t: known one step after t.
-        return int(self.features == "transition")
-
-    def _features(self, trajectory: Trajectory) -> np.ndarray:
-        return trajectory_features(trajectory, self.features, self.action_encoding_)
+    ridge: float = 1e-3
 
     def _fit(self, trajectories: Sequence[Trajectory]) -> None:
-        self.action_encoding_ = ActionEncoding.fit(trajectories)
-        x = stacked(trajectories, self._features)
-        self.standardizer_ = Standardizer.fit(x)
-        self.gaussian_ = GaussianModel.fit(self.standardizer_.transform(x), self.ridge)
+        self.gaussian_ = GaussianModel.fit(self._fit_features(trajectories), self.ridge)
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
-        x = self.standardizer_.transform(stacked(trajectories, self._features))
+        x = self._standardized_features(trajectories)
         return split_scores(self.gaussian_.squared_distance(x), trajectories)

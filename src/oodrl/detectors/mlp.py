@@ -193,7 +193,7 @@ class Adam:
 
 
 @dataclass(frozen=True)
-class TrainSettings:
+class OptimiserSettings:
     """Optimisation settings shared by the neural detectors (Adam, a fixed number of epochs)."""
 
     epochs: int
@@ -215,7 +215,7 @@ def train(
     inputs: np.ndarray,
     targets: np.ndarray,
     loss: Loss,
-    settings: TrainSettings,
+    settings: OptimiserSettings,
     indices: np.ndarray,
     rng: np.random.Generator,
 ) -> tuple[EnsembleWeights, list[float]]:

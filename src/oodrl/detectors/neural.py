@@ -12,7 +12,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from oodrl.core.detector import BaseDetector
+from oodrl.core.detector import BaseDetector, detector_parameters
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors import mlp
 from oodrl.detectors.features import (
@@ -20,7 +20,7 @@ from oodrl.detectors.features import (
     Standardizer,
     increments,
     stacked,
-    trajectory_features,
+    stacked_features,
 )
 from oodrl.validation import Interval, SequenceOf
 
@@ -50,8 +50,10 @@ def chunked_scores(
     return np.concatenate(scores)
 
 
+@detector_parameters
 class NeuralDetector(BaseDetector):
-    """Parameters every neural detector shares; subclasses declare the defaults.
+    """Parameters every neural detector shares, with their defaults (a subclass may re-declare
+    one with its own default).
 
     `hidden_sizes` (list of ints), `epochs`, `batch_size` and `lr` (Adam) are validated here once
     for all of them. Training and scoring run in numpy on the CPU.
@@ -64,10 +66,10 @@ class NeuralDetector(BaseDetector):
         "lr": [Interval(float, 0, None, closed="neither")],
     }
 
-    hidden_sizes: Sequence[int]
-    epochs: int
-    batch_size: int
-    lr: float
+    hidden_sizes: Sequence[int] = (64, 64)
+    epochs: int = 30
+    batch_size: int = 256
+    lr: float = 1e-3
 
     def _train(
         self,
@@ -91,20 +93,22 @@ class NeuralDetector(BaseDetector):
             inputs,
             targets,
             LOSSES[loss],
-            mlp.TrainSettings(self.epochs, self.batch_size, self.lr),
+            mlp.OptimiserSettings(self.epochs, self.batch_size, self.lr),
             mlp.member_indices(n_members, len(inputs), bootstrap, rng),
             rng,
         )
 
 
+@detector_parameters
 class TransitionEnsemble(NeuralDetector):
     """An ensemble of M networks from the standardised (s_t, one-hot a_t) to the standardised
     increment s_{t+1} − s_t: the dynamics model `pedm` and `ensemble_disagreement` share."""
 
-    n_members: int
+    n_members: int = 5
 
-    def _inputs(self, trajectory: Trajectory) -> np.ndarray:
-        return trajectory_features(trajectory, "state_action", self.action_encoding_)
+    def _standardized_inputs(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
+        inputs = stacked_features(trajectories, "state_action", self.action_encoding_)
+        return self.input_standardizer_.transform(inputs)
 
     def _fit_ensemble(
         self, trajectories: Sequence[Trajectory], loss: str, outputs_per_coordinate: int,
@@ -113,7 +117,7 @@ class TransitionEnsemble(NeuralDetector):
         """Train the members with `loss` ("mse" or "gaussian_nll"), each on a bootstrap
         resample or on all transitions; returns the increments' standardizer."""
         self.action_encoding_ = ActionEncoding.fit(trajectories)
-        inputs = stacked(trajectories, self._inputs)
+        inputs = stacked_features(trajectories, "state_action", self.action_encoding_)
         deltas = stacked(trajectories, increments)
         self.input_standardizer_ = Standardizer.fit(inputs)
         target_standardizer = Standardizer.fit(deltas)

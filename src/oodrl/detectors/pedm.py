@@ -30,17 +30,15 @@ from typing import ClassVar
 import numpy as np
 
 from oodrl import numerics
+from oodrl.core.detector import detector_parameters
 from oodrl.core.trajectory import Trajectory
-from oodrl.detectors.features import (
-    increments,
-    split_scores,
-    stacked,
-)
+from oodrl.detectors.features import increments, split_scores, stacked
 from oodrl.detectors.mlp import gaussian_mean_and_logvar
 from oodrl.detectors.neural import TransitionEnsemble, chunked_scores
 from oodrl.validation import Interval
 
 
+@detector_parameters
 class Pedm(TransitionEnsemble):
     """Minimum sampled transition error of a probabilistic dynamics ensemble.
 
@@ -67,28 +65,8 @@ class Pedm(TransitionEnsemble):
         "n_samples": [Interval(int, 1, None)],
     }
 
-    def __init__(
-        self,
-        *,
-        n_members: int = 5,
-        n_samples: int = 10,
-        hidden_sizes: Sequence[int] = (64, 64),
-        epochs: int = 30,
-        batch_size: int = 256,
-        lr: float = 1e-3,
-        threshold_rule: str = "max",
-        threshold_percentile: float = 99.0,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(
-            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
-        )
-        self.n_members = n_members
-        self.n_samples = n_samples
-        self.hidden_sizes = hidden_sizes
-        self.epochs = epochs
-        self.batch_size = batch_size
-        self.lr = lr
+    n_samples: int = 10
+    threshold_rule: str = "max"
 
     @property
     def latency(self) -> int:
@@ -107,7 +85,7 @@ class Pedm(TransitionEnsemble):
         return rng.standard_normal((horizon, self.n_members, self.n_samples, self.state_dim_))
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
-        inputs = self.input_standardizer_.transform(stacked(trajectories, self._inputs))
+        inputs = self._standardized_inputs(trajectories)
         targets = self.target_standardizer_.transform(stacked(trajectories, increments))
         steps = np.concatenate([np.arange(t.T) for t in trajectories])
         # (T, M, d_s, K): samples innermost, so the sum over coordinates runs on whole rows.

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from oodrl import numerics
-from oodrl.core.detector import BaseDetector
+from oodrl.core.detector import BaseDetector, detector_parameters
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import GaussianModel, Standardizer, stacked
 from oodrl.errors import ContractError
@@ -133,6 +133,7 @@ def window_descriptors(series: np.ndarray, window: int) -> np.ndarray:
     )
 
 
+@detector_parameters
 class TimeSeriesFeatures(BaseDetector):
     """Distance of rolling-window descriptors of the state from their fit distribution.
 
@@ -153,27 +154,14 @@ class TimeSeriesFeatures(BaseDetector):
         "ridge": [Interval(float, 0, None, closed="neither")],
     }
 
-    def __init__(
-        self,
-        *,
-        window: int = 32,
-        distance: str = "mahalanobis",
-        ridge: float = 1e-3,
-        threshold_rule: str = "percentile",
-        threshold_percentile: float = 99.0,
-        seed: int = 0,
-    ) -> None:
-        super().__init__(
-            threshold_rule=threshold_rule, threshold_percentile=threshold_percentile, seed=seed
-        )
-        self.window = window
-        self.distance = distance
-        self.ridge = ridge
+    window: int = 32
+    distance: str = "mahalanobis"
+    ridge: float = 1e-3
 
     def _descriptors(self, trajectory: Trajectory) -> np.ndarray:
         if self.window > trajectory.T:
             raise ContractError(
-                f"{self.detector_name} needs trajectories of at least window={self.window} "
+                f"{self.name} needs trajectories of at least window={self.window} "
                 f"steps; got T={trajectory.T}. Lower 'window' or use longer trajectories."
             )
         series = self.state_standardizer_.transform(trajectory.states.astype(np.float64))

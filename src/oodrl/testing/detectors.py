@@ -109,9 +109,8 @@ def with_extra_state_dimension(trajectory: Trajectory) -> Trajectory:
 
 
 def check_parameters(detector: BaseDetector) -> None:
-    """A registered name, constraints for every parameter, defaults that validate, a clone."""
+    """Constraints for every parameter, defaults that validate, a clone."""
     cls = type(detector)
-    assert cls.name, f"{cls.__name__} has no class attribute 'name'."
     missing = set(constructor_params(cls)) - set(constraints_of(cls))
     assert not missing, f"{cls.__name__} declares no constraints for {sorted(missing)}."
     detector.validate_params()
@@ -126,7 +125,7 @@ def check_not_fitted(detector: BaseDetector, trajectory: Trajectory) -> None:
             use(trajectory)
         except NotFittedError:
             continue
-        raise AssertionError(f"{detector.detector_name} did not raise NotFittedError before fit.")
+        raise AssertionError(f"{detector.name} did not raise NotFittedError before fit.")
 
 
 def check_scores(detector: BaseDetector, trajectories: Sequence[Trajectory]) -> None:
@@ -146,7 +145,7 @@ def check_reproducible(
     (the pipeline's fit outputs must reproduce bit for bit)."""
     one, two = factory().fit(fit_trajectories), factory().fit(fit_trajectories)
     assert pickle.dumps(one) == pickle.dumps(two), (
-        f"{one.detector_name}: two fits pickle to different bytes (fitted state that is not "
+        f"{one.name}: two fits pickle to different bytes (fitted state that is not "
         "byte-reproducible, e.g. a scipy cKDTree, must be rebuilt when scoring)."
     )
     first, second = one.score_many(trajectories), two.score_many(trajectories)
@@ -159,7 +158,7 @@ def check_score_is_pure(detector: BaseDetector, trajectories: Sequence[Trajector
     before = pickle.dumps(detector)
     first = [o.scores for o in detector.score_many(trajectories)]
     second = [detector.score(t).scores for t in trajectories]
-    assert pickle.dumps(detector) == before, f"{detector.detector_name}.score changed the detector."
+    assert pickle.dumps(detector) == before, f"{detector.name}.score changed the detector."
     for one, batched in zip(second, first, strict=True):
         np.testing.assert_allclose(
             one,
@@ -179,7 +178,7 @@ def check_state_dim(detector: BaseDetector, trajectory: Trajectory) -> None:
         detector.score(with_extra_state_dimension(trajectory))
     except ContractError:
         return
-    raise AssertionError(f"{detector.detector_name} scored a wrong-dimension trajectory.")
+    raise AssertionError(f"{detector.name} scored a wrong-dimension trajectory.")
 
 
 def check_threshold(detector: BaseDetector, calibration: Sequence[Trajectory]) -> None:
@@ -232,7 +231,7 @@ def check_torch_free_import(detector: BaseDetector) -> None:
         [sys.executable, "-c", code], input=pickle.dumps(detector), capture_output=True
     )
     assert result.returncode == 0, (
-        f"building {detector.detector_name} imported torch. {result.stderr.decode()}"
+        f"building {detector.name} imported torch. {result.stderr.decode()}"
     )
 
 
