@@ -1,4 +1,5 @@
-"""Every registered detector passes the oodrl.testing contract checks (ids = detector name)."""
+"""Every registered detector passes the oodrl.testing contract checks (ids = detector name),
+on discrete-action and on continuous-action data."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import subprocess
 import sys
 from functools import cache
 
+import numpy as np
 import pytest
 
 from oodrl.core.detector import BaseDetector
@@ -20,7 +22,7 @@ from oodrl.testing import (
     check_pickle_roundtrip,
     check_reproducible,
     check_score_is_pure,
-    check_scores,
+    check_scores_use_the_data,
     check_state_dim,
     check_threshold,
     check_torch_free_import,
@@ -42,24 +44,34 @@ SMALL: dict[str, dict] = {
 DATA = linear_system_trajectories(10, T=120, episode_length=80, seed=0)
 FIT, CALIBRATION, EVALUATION = DATA[:6], DATA[6:8], DATA[8:]
 
+#: (fit, calibration, evaluation) trajectories by action kind.
+SPLITS = {
+    "discrete": (FIT, CALIBRATION, EVALUATION),
+    "continuous": (lambda d: (d[:6], d[6:8], d[8:]))(
+        linear_system_trajectories(10, T=120, action_dim=2, seed=0)
+    ),
+}
+ACTIONS = list(SPLITS)
+
 
 def make(name: str) -> BaseDetector:
     return DETECTORS.get(name)(**SMALL.get(name, {}))
 
 
 @cache
-def _fitted(name: str) -> BaseDetector:
-    return make(name).fit(FIT)
+def _fitted(name: str, actions: str) -> BaseDetector:
+    return make(name).fit(SPLITS[actions][0])
 
 
-@pytest.fixture
-def fitted(request) -> BaseDetector:
-    """A fitted detector of the test's name; a copy, so a test may calibrate it."""
-    return copy.deepcopy(_fitted(request.param))
+def by_name_and_actions(test):
+    """Run `test(name, actions)` for every registered detector and both action kinds."""
+    test = pytest.mark.parametrize("actions", ACTIONS, ids=ACTIONS)(test)
+    return pytest.mark.parametrize("name", NAMES, ids=NAMES)(test)
 
 
-def by_name(test):
-    return pytest.mark.parametrize("fitted", NAMES, ids=NAMES, indirect=True)(test)
+def fitted(name: str, actions: str) -> BaseDetector:
+    """A fitted detector; a copy, so a test may calibrate it."""
+    return copy.deepcopy(_fitted(name, actions))
 
 
 @pytest.mark.parametrize("name", NAMES, ids=NAMES)
@@ -90,43 +102,64 @@ def test_not_fitted(name):
     check_not_fitted(make(name), EVALUATION[0])
 
 
-@pytest.mark.parametrize("name", NAMES, ids=NAMES)
-def test_reproducible(name):
-    check_reproducible(lambda: make(name), FIT, EVALUATION)
+@by_name_and_actions
+def test_reproducible(name, actions):
+    fit, _, evaluation = SPLITS[actions]
+    check_reproducible(lambda: make(name), fit, evaluation)
 
 
-@pytest.mark.parametrize("name", NAMES, ids=NAMES)
-def test_global_random_state_untouched(name):
-    check_global_random_state(lambda: make(name), FIT, EVALUATION)
+@by_name_and_actions
+def test_global_random_state_untouched(name, actions):
+    fit, _, evaluation = SPLITS[actions]
+    check_global_random_state(lambda: make(name), fit, evaluation)
 
 
-@by_name
-def test_scores(fitted):
-    check_scores(fitted, EVALUATION)
+@by_name_and_actions
+def test_scores_use_the_data(name, actions):
+    fit, _, evaluation = SPLITS[actions]
+    check_scores_use_the_data(lambda: make(name), fit, evaluation)
 
 
-@by_name
-def test_score_is_pure(fitted):
-    check_score_is_pure(fitted, EVALUATION)
+@by_name_and_actions
+def test_score_is_pure(name, actions):
+    check_score_is_pure(fitted(name, actions), SPLITS[actions][2])
 
 
-@by_name
-def test_wrong_state_dim(fitted):
-    check_state_dim(fitted, EVALUATION[0])
+@by_name_and_actions
+def test_wrong_state_dim(name, actions):
+    check_state_dim(fitted(name, actions), SPLITS[actions][2][0])
 
 
-@by_name
-def test_threshold(fitted):
-    check_threshold(fitted, CALIBRATION)
+@by_name_and_actions
+def test_threshold(name, actions):
+    check_threshold(fitted(name, actions), SPLITS[actions][1])
 
 
-@by_name
-def test_pickle_roundtrip(fitted):
-    check_pickle_roundtrip(fitted, EVALUATION)
+@by_name_and_actions
+def test_pickle_roundtrip(name, actions):
+    check_pickle_roundtrip(fitted(name, actions), SPLITS[actions][2])
 
 
-def test_check_detector_runs_every_check():
-    check_detector(lambda: make("mahalanobis_distance"), FIT, CALIBRATION, EVALUATION)
+@pytest.mark.parametrize("actions", ACTIONS, ids=ACTIONS)
+def test_check_detector_runs_every_check(actions):
+    check_detector(lambda: make("mahalanobis_distance"), *SPLITS[actions])
+
+
+def test_continuous_data_has_float32_action_vectors_that_move_the_system():
+    discrete, continuous = SPLITS["discrete"][0], SPLITS["continuous"][0]
+    assert all(t.actions.shape == (t.T,) and t.actions.dtype == np.int64 for t in discrete)
+    assert all(t.actions.shape == (t.T, 2) and t.actions.dtype == np.float32 for t in continuous)
+    actions = np.concatenate([t.actions for t in continuous])
+    assert np.abs(actions).max() <= 1 and actions.std(axis=0).min() > 0.1
+    # The actions move the system: s' depends on a beyond A s (a least-squares fit on (s, a)
+    # explains the increments better than one on s alone).
+    s = np.concatenate([t.states for t in continuous]).astype(np.float64)
+    nxt = np.concatenate([t.next_states for t in continuous]).astype(np.float64)
+    keep = ~np.concatenate([t.dones for t in continuous])
+    s, a, nxt = s[keep], actions[keep].astype(np.float64), nxt[keep]
+    residual_without = np.linalg.lstsq(s, nxt, rcond=None)[1].sum()
+    residual_with = np.linalg.lstsq(np.hstack([s, a]), nxt, rcond=None)[1].sum()
+    assert residual_with < 0.7 * residual_without
 
 
 def test_package_import_is_light():
@@ -141,3 +174,30 @@ def test_package_import_is_light():
 
 def test_pedm_threshold_defaults_to_max():
     assert DETECTORS.get("pedm")().threshold_rule == "max"
+
+
+class _Constant(BaseDetector):
+    """Scores every step alike: a broken detector the contract must reject."""
+
+    def _fit(self, trajectories):
+        pass
+
+    def _score(self, trajectory):
+        return np.ones(trajectory.T)
+
+
+class _IgnoresFit(_Constant):
+    """Scores the step's state norm whatever it was fitted on: also rejected."""
+
+    def _score(self, trajectory):
+        return np.linalg.norm(trajectory.states, axis=1)
+
+
+@pytest.mark.parametrize(
+    ("broken", "message"),
+    [(_Constant, "ignore the steps"), (_IgnoresFit, "ignore the fit set")],
+    ids=["constant", "ignores_fit"],
+)
+def test_scores_use_the_data_rejects_broken_detectors(broken, message):
+    with pytest.raises(AssertionError, match=message):
+        check_scores_use_the_data(broken, FIT, EVALUATION)

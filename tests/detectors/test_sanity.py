@@ -104,10 +104,3 @@ def test_detector_separates_a_blatant_anomaly(name):
         fit, clean, perturbed = FIT, CLEAN, [regime_switch(t, ONSET) for t in CLEAN]
     detector = DETECTORS.get(name)().fit(fit)
     assert matched_auroc(detector, clean, perturbed) > MIN_AUROC
-
-
-def test_lyapunov_divergence_ignores_pure_displacement():
-    """Documented blind spot: a displaced regime does not raise the divergence score."""
-    detector = DETECTORS.get("lyapunov_divergence")().fit(FIT)
-    perturbed = [regime_switch(t, ONSET) for t in CLEAN]
-    assert matched_auroc(detector, CLEAN, perturbed) < MIN_AUROC

@@ -19,7 +19,7 @@ __all__ = [
     "check_pickle_roundtrip",
     "check_reproducible",
     "check_score_is_pure",
-    "check_scores",
+    "check_scores_use_the_data",
     "check_state_dim",
     "check_threshold",
     "check_torch_free_import",

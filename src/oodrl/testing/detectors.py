@@ -4,6 +4,9 @@
 
     data = linear_system_trajectories(10, seed=0)
     check_detector(lambda: MyDetector(epochs=2), data[:6], data[6:8], data[8:])
+    # and again on continuous actions, (T, 2) float32:
+    data = linear_system_trajectories(10, action_dim=2, seed=0)
+    check_detector(lambda: MyDetector(epochs=2), data[:6], data[6:8], data[8:])
 
 Each `check_*` function raises AssertionError (or the unexpected oodrl error) on a violation
 and can be called on its own; `check_detector` runs them all. A factory, not an instance, is
@@ -38,57 +41,95 @@ def linear_system_trajectories(
     T: int = 120,  # noqa: N803 - T is the protocol's name for the horizon
     state_dim: int = 4,
     n_actions: int = 3,
+    action_dim: int | None = None,
     episode_length: int = 80,
     seed: int = 0,
 ) -> list[Trajectory]:
-    """Cheap deterministic trajectories of a noisy linear system with discrete actions.
+    """Cheap deterministic trajectories of a noisy linear system.
 
-    s_{t+1} = A s_t + B[a_t] + 0.1·N(0, I), A a contraction with some rotation, and a_t from a
-    noisy linear policy. Episodes last `episode_length` ± 25% steps; as in the collector, an
-    episode end sets `dones[t]`, `next_states[t]` is the terminal observation and the stream
-    continues from a fresh initial state. The system (A, B, policy) depends on `seed` only;
-    trajectory i draws from its own generator, so the first k of n trajectories do not depend
-    on n.
+    s_{t+1} = A s_t + B(a_t) + 0.1·N(0, I), A a contraction with some rotation. Actions are
+    discrete by default: a_t one of `n_actions`, from a noisy linear policy, and B(a) = B[a].
+    With `action_dim`, they are continuous, (T, action_dim) float32 in [-1, 1]: a_t = clip(K s_t
+    + 0.3·N(0, I)), and B(a) = B a. Episodes last `episode_length` ± 25% steps; as in the
+    collector, an episode end sets `dones[t]`, `next_states[t]` is the terminal observation and
+    the stream continues from a fresh initial state. The system (A, B, policy) depends on `seed`
+    and the action kind only; trajectory i draws from its own generator, so the first k of n
+    trajectories do not depend on n.
     """
     system = np.random.default_rng([seed, 0])
     dynamics = 0.9 * np.linalg.qr(system.standard_normal((state_dim, state_dim)))[0]
+    if action_dim is None:
+        act = _discrete_policy(system, state_dim, n_actions)
+    else:
+        act = _continuous_policy(system, state_dim, action_dim)
+    return [_trajectory(act, dynamics, T, episode_length, [seed, 1, index]) for index in range(n)]
+
+
+#: A policy and the effect of its action: (state, rng) -> (action, its additive effect on s').
+ActionModel = Callable[[np.ndarray, np.random.Generator], tuple[np.ndarray, np.ndarray]]
+
+
+def _discrete_policy(system: np.random.Generator, state_dim: int, n_actions: int) -> ActionModel:
     action_effects = 0.3 * system.standard_normal((n_actions, state_dim))
     policy = system.standard_normal((n_actions, state_dim))
-    trajectories = []
-    for index in range(n):
-        rng = np.random.default_rng([seed, 1, index])
-        states = np.empty((T, state_dim))
-        next_states = np.empty((T, state_dim))
-        actions = np.empty(T, dtype=np.int64)
-        dones = np.zeros(T, dtype=bool)
-        episode_index = np.empty(T, dtype=np.int64)
-        episode = 0
-        state, remaining = _initial(rng, state_dim, episode_length)
-        for t in range(T):
-            states[t] = state
-            actions[t] = np.argmax(policy @ state + rng.gumbel(size=n_actions))
-            next_states[t] = (
-                dynamics @ state + action_effects[actions[t]] + 0.1 * rng.standard_normal(state_dim)
-            )
-            episode_index[t] = episode
-            remaining -= 1
-            dones[t] = remaining == 0
-            if dones[t]:
-                state, remaining = _initial(rng, state_dim, episode_length)
-                episode += 1
-            else:
-                state = next_states[t]
-        trajectories.append(
-            Trajectory(
-                states=states.astype(np.float32),
-                actions=actions,
-                rewards=-(states**2).sum(axis=1).astype(np.float32),
-                next_states=next_states.astype(np.float32),
-                dones=dones,
-                info={"episode_index": episode_index, "seed": index},
-            )
-        )
-    return trajectories
+
+    def act(state: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        action = np.argmax(policy @ state + rng.gumbel(size=n_actions))
+        return action, action_effects[action]
+
+    return act
+
+
+def _continuous_policy(system: np.random.Generator, state_dim: int, action_dim: int) -> ActionModel:
+    action_effects = 0.3 * system.standard_normal((state_dim, action_dim))
+    gain = 0.5 * system.standard_normal((action_dim, state_dim))
+
+    def act(state: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        noisy = gain @ state + 0.3 * rng.standard_normal(action_dim)
+        # The stored float32 action is the one that moves the system.
+        action = np.clip(noisy, -1.0, 1.0).astype(np.float32)
+        return action, action_effects @ action.astype(np.float64)
+
+    return act
+
+
+def _trajectory(
+    act: ActionModel,
+    dynamics: np.ndarray,
+    T: int,
+    episode_length: int,
+    seed: list[int],  # noqa: N803
+) -> Trajectory:
+    rng = np.random.default_rng(seed)
+    state_dim = dynamics.shape[0]
+    states = np.empty((T, state_dim))
+    next_states = np.empty((T, state_dim))
+    actions = []
+    dones = np.zeros(T, dtype=bool)
+    episode_index = np.empty(T, dtype=np.int64)
+    episode = 0
+    state, remaining = _initial(rng, state_dim, episode_length)
+    for t in range(T):
+        states[t] = state
+        action, effect = act(state, rng)
+        actions.append(action)
+        next_states[t] = dynamics @ state + effect + 0.1 * rng.standard_normal(state_dim)
+        episode_index[t] = episode
+        remaining -= 1
+        dones[t] = remaining == 0
+        if dones[t]:
+            state, remaining = _initial(rng, state_dim, episode_length)
+            episode += 1
+        else:
+            state = next_states[t]
+    return Trajectory(
+        states=states.astype(np.float32),
+        actions=np.asarray(actions),
+        rewards=-(states**2).sum(axis=1).astype(np.float32),
+        next_states=next_states.astype(np.float32),
+        dones=dones,
+        info={"episode_index": episode_index, "seed": seed[-1]},
+    )
 
 
 def _initial(
@@ -128,12 +169,33 @@ def check_not_fitted(detector: BaseDetector, trajectory: Trajectory) -> None:
         raise AssertionError(f"{detector.name} did not raise NotFittedError before fit.")
 
 
-def check_scores(detector: BaseDetector, trajectories: Sequence[Trajectory]) -> None:
-    """Finite float64 scores of shape (T,) for every trajectory."""
-    for trajectory, output in zip(trajectories, detector.score_many(trajectories), strict=True):
-        assert output.scores.shape == (trajectory.T,), f"scores shape {output.scores.shape}"
-        assert output.scores.dtype == np.float64, f"scores dtype {output.scores.dtype}"
-        assert np.isfinite(output.scores).all(), "scores contain NaN or inf"
+def check_scores_use_the_data(
+    factory: DetectorFactory,
+    fit_trajectories: Sequence[Trajectory],
+    trajectories: Sequence[Trajectory],
+) -> None:
+    """The scores depend on the scored steps and on the fit set.
+
+    Shape, dtype and finiteness are the base class's to enforce; what it cannot see is a
+    detector that scores every step alike (an unfinished `_score`) or ignores what it learned
+    (stale or unused fitted state). So: the scores vary over the steps, and fitting on the fit
+    set moved and stretched changes them.
+    """
+    scores = [o.scores for o in factory().fit(fit_trajectories).score_many(trajectories)]
+    steps = np.concatenate(scores)
+    assert np.ptp(steps) > 0, f"every step scored {steps[0]}: the scores ignore the steps."
+    moved = [_moved_and_stretched(t) for t in fit_trajectories]
+    refitted = [o.scores for o in factory().fit(moved).score_many(trajectories)]
+    assert any(not np.array_equal(a, b) for a, b in zip(scores, refitted, strict=True)), (
+        "fitting on other data gave the same scores: the scores ignore the fit set."
+    )
+
+
+def _moved_and_stretched(trajectory: Trajectory) -> Trajectory:
+    """The trajectory with every observation x replaced by 3x + 1."""
+    return trajectory.replace(
+        states=3 * trajectory.states + 1, next_states=3 * trajectory.next_states + 1
+    )
 
 
 def check_reproducible(
@@ -248,7 +310,7 @@ def check_detector(
     check_not_fitted(fresh, eval_trajectories[0])
     fitted = factory()
     assert fitted.fit(fit_trajectories) is fitted, "fit must return the detector itself"
-    check_scores(fitted, eval_trajectories)
+    check_scores_use_the_data(factory, fit_trajectories, eval_trajectories)
     check_reproducible(factory, fit_trajectories, eval_trajectories)
     check_global_random_state(factory, fit_trajectories, eval_trajectories)
     check_score_is_pure(fitted, eval_trajectories)
