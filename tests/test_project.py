@@ -1,10 +1,15 @@
-"""Project-level promises: the README's two commands, CI's params, nothing host-specific."""
+"""Project-level promises: the README's two commands, CI's params, pinned dependencies,
+nothing host-specific."""
 
 from __future__ import annotations
 
 import subprocess
+from importlib import metadata
 
 import yaml
+from packaging.requirements import Requirement
+from packaging.specifiers import SpecifierSet
+from packaging.utils import canonicalize_name
 
 from oodrl.config import load_params
 
@@ -43,10 +48,54 @@ def test_ci_params_are_valid_and_reuse_the_committed_policy(repo_root):
     assert ci.benchmark == default.benchmark, "CI must exercise every stage of the pipeline"
 
 
-def test_constraints_pin_torch_to_the_cpu_build(repo_root):
-    pins = (repo_root / "constraints.txt").read_text().splitlines()
-    assert "torch==2.13.0" in pins
-    assert not any(line.lower().startswith(("nvidia", "cuda")) for line in pins)
+def _pins(constraints: str) -> dict[str, SpecifierSet]:
+    """Each pinned distribution's canonical name and its `==` specifier."""
+    pins = {}
+    for line in constraints.splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            requirement = Requirement(line)
+            pins[canonicalize_name(requirement.name)] = requirement.specifier
+    return pins
+
+
+def _installed_closure(name: str, extras: tuple[str, ...]) -> set[str]:
+    """Canonical names of `name`[extras] and of every distribution it needs, transitively, as
+    the installed metadata and this interpreter's markers say."""
+    seen: set[tuple[str, str]] = set()
+    pending = [(name, extra) for extra in ("", *extras)]
+    names = set()
+    while pending:
+        current, extra = pending.pop()
+        key = canonicalize_name(current)
+        if (key, extra) in seen:
+            continue
+        seen.add((key, extra))
+        names.add(key)
+        for line in metadata.distribution(current).requires or []:
+            requirement = Requirement(line)
+            if requirement.marker is None or requirement.marker.evaluate({"extra": extra}):
+                pending += [(requirement.name, e) for e in ("", *requirement.extras)]
+    return names
+
+
+def test_constraints_pin_every_installed_dependency_to_the_installed_version(repo_root):
+    """The README installs with `-c constraints.txt`: a dependency it does not pin is whatever
+    the index serves that day, and an installed version off its pin means this environment is
+    not the pinned one."""
+    pins = _pins((repo_root / "constraints.txt").read_text())
+    needed = _installed_closure("oodrl", ("dev",)) - {"oodrl"}
+    unpinned = sorted(f"{n}=={metadata.version(n)}" for n in needed if n not in pins)
+    assert not unpinned, f"constraints.txt lacks pins; add the lines {unpinned}."
+    off = {n: metadata.version(n) for n in needed if metadata.version(n) not in pins[n]}
+    assert not off, f"installed versions differ from their pins in constraints.txt: {off}"
+    assert all(str(spec).startswith("==") for spec in pins.values()), "pins must be exact"
+
+
+def test_constraints_pin_the_cpu_build_of_torch(repo_root):
+    pins = _pins((repo_root / "constraints.txt").read_text())
+    assert "torch" in pins
+    assert not any(name.startswith(("nvidia", "cuda")) for name in pins), "a CUDA package"
 
 
 def test_params_yaml_is_plain_yaml(repo_root):
