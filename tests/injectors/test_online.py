@@ -5,11 +5,11 @@ import pytest
 from rollout_policies import HeuristicPolicy
 
 from oodrl.core.injector import Fault
-from oodrl.envs.collect import collect
+from oodrl.envs.collect import BLOCK_SIZE, collect
 from oodrl.envs.lunar_lander import LunarLanderAdapter
 from oodrl.errors import ConfigError
 from oodrl.injectors import INJECTORS
-from oodrl.injectors.apply import collect_online, injector_rng
+from oodrl.injectors.apply import collect_online, collect_online_sets, injector_rng
 
 ONLINE = [name for name in INJECTORS.names() if INJECTORS.get(name).mode == "online"]
 DYNAMICS = ["dynamics_scaling", "action_conditioned_dynamics", "gradual_drift"]
@@ -174,3 +174,16 @@ def test_gain_sets_the_full_severity_factor(name):
     assert lowered.full_factor(1.0) == 1.3 and lowered.full_factor(0.0) == 1.0
     with pytest.raises(ConfigError, match="'gain' parameter"):
         INJECTORS.get(name)(gain=0.0).validate_params()
+
+
+def test_sweep_collection_reports_progress_per_block_of_streams():
+    """The online-collection progress bar's total is seeds × specs; it must reach it."""
+    injector = make("dynamics_scaling")
+    specs = [injector.spec(severity, 5) for severity in (0.2, 0.8)]
+    seeds = list(range(10000, 10000 + BLOCK_SIZE + 3))  # a full block and a partial one
+    done: list[int] = []
+    sets = collect_online_sets(
+        injector, ADAPTER, POLICY, seeds, 12, specs, seed=0, policy_seed=0, progress=done.append
+    )
+    assert len(sets) == len(specs)
+    assert done == [BLOCK_SIZE, 3] * len(specs)

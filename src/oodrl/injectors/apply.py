@@ -91,7 +91,10 @@ def collect_online_sets(
     workers: int = 1,
     progress: Callable[[int], None] | None = None,
 ) -> list[TrajectorySet]:
-    """`collect_online` for several specs (a severity sweep) sharing one pool of workers."""
+    """`collect_online` for several specs (a severity sweep) sharing one pool of workers.
+
+    `progress(n)` is called as each block of n streams is done: len(seeds) · len(specs) in all.
+    """
     injector.check_adapter(adapter)
     requests = []
     for spec in specs:
@@ -109,4 +112,6 @@ def collect_online_sets(
             "spec": spec.to_dict(),
         }
         requests.append(Request(tuple(int(s) for s in seeds), spec.labels(T), faults, attrs))
-    return collect_many(adapter, policy, requests, T, policy_seed=policy_seed, workers=workers)
+    return collect_many(
+        adapter, policy, requests, T, policy_seed=policy_seed, workers=workers, progress=progress
+    )
