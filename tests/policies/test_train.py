@@ -1,3 +1,4 @@
+import dataclasses
 import json
 from pathlib import Path
 
@@ -69,6 +70,16 @@ def test_training_is_byte_reproducible(tiny_run, tmp_path: Path):
     assert (tmp_path / "policy.pt").read_bytes() == policy_path.read_bytes()
     assert again["evaluation"] == report["evaluation"]
     assert again["learning_curve"] == report["learning_curve"]
+
+
+@pytest.mark.slow
+def test_training_stops_at_the_first_evaluation_good_enough_and_prints_it(tmp_path, capsys):
+    config = dataclasses.replace(TINY, early_stop_return=-1e9)
+    report = train(config, tmp_path / "policy.pt", tmp_path / "policy.json", progress=True)
+    assert report["steps_run"] == 400 and report["best_step"] == 400
+    assert [s for s, _ in report["learning_curve"]] == [400]
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("step      400  eval")
 
 
 def test_config_normalises_hidden_sizes_for_the_report():

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +68,75 @@ def greedy_returns(
     return evaluate_policy(policy, episodes, seed, env_id=config.env_id)
 
 
+@dataclass
+class Tuning:
+    """The periodic greedy evaluations on tuning seeds: the curve and the best weights so far."""
+
+    seeds_start: int
+    episodes: int
+    best_state: dict[str, torch.Tensor]
+    best_return: float = -np.inf
+    best_step: int = 0
+    curve: list[tuple[int, float]] = field(default_factory=list)
+
+    def evaluate(self, q_net: NoisyQNetwork, config: TrainConfig, step: int) -> float:
+        """The greedy mean return now; keeps the weights when it is the best so far."""
+        mean = float(greedy_returns(q_net, config, self.episodes, self.seeds_start).mean())
+        self.curve.append((step, mean))
+        if mean > self.best_return:
+            self.best_return, self.best_step = mean, step
+            self.best_state = copy.deepcopy(q_net.state_dict())
+        return mean
+
+    def report(self) -> dict[str, Any]:
+        return {
+            "episodes": self.episodes,
+            "seeds_start": self.seeds_start,
+            "best_mean": float(self.best_return),
+            "best_step": self.best_step,
+        }
+
+
+def update(
+    q_net: NoisyQNetwork,
+    target_net: NoisyQNetwork,
+    optimizer: torch.optim.Optimizer,
+    batch: tuple[torch.Tensor, ...],
+    config: TrainConfig,
+    step: int,
+    noise_gen: torch.Generator,
+) -> None:
+    """One double-DQN step on a replay minibatch, at the step's linearly annealed learning rate.
+
+    The online network picks the next action and the target network values it; the online side
+    uses one noise sample for both its passes, the target side its own.
+    """
+    frac = min(1.0, step / config.total_steps)
+    for group in optimizer.param_groups:
+        group["lr"] = config.lr + frac * (config.lr_final - config.lr)
+    b_obs, b_act, b_rew, b_next, b_term = batch
+    online_noise = q_net.sample_noise(noise_gen)
+    with torch.no_grad():
+        next_action = q_net(b_next, online_noise).argmax(dim=1, keepdim=True)
+        next_q = target_net(b_next, target_net.sample_noise(noise_gen)).gather(1, next_action)
+        target = b_rew + config.gamma * (1.0 - b_term) * next_q.squeeze(1)
+    q_taken = q_net(b_obs, online_noise).gather(1, b_act.unsqueeze(1)).squeeze(1)
+    loss = nn.functional.smooth_l1_loss(q_taken, target)
+    optimizer.zero_grad()
+    loss.backward()
+    nn.utils.clip_grad_norm_(q_net.parameters(), config.max_grad_norm)
+    optimizer.step()
+
+
+def print_progress(step: int, mean: float, tuning: Tuning, returns: list[float], started: float):
+    recent = np.mean(returns[-20:]) if returns else float("nan")
+    print(
+        f"step {step:>8d}  eval {mean:8.1f}  best {tuning.best_return:8.1f}@{tuning.best_step}  "
+        f"train(20) {recent:8.1f}  {time.perf_counter() - started:6.0f}s",
+        flush=True,
+    )
+
+
 def train(
     config: TrainConfig, policy_path: Path, report_path: Path, progress: bool = False
 ) -> dict[str, Any]:
@@ -84,10 +154,10 @@ def train(
     target_net = copy.deepcopy(q_net)
     optimizer = torch.optim.Adam(q_net.parameters(), lr=config.lr, eps=config.adam_eps)
     buffer = ReplayBuffer(config.buffer_size, state_dim)
+    tuning = Tuning(
+        config.seed + TUNING_SEED_OFFSET, config.eval_episodes, copy.deepcopy(q_net.state_dict())
+    )
 
-    best_state = copy.deepcopy(q_net.state_dict())
-    best_return, best_step = -np.inf, 0
-    curve: list[tuple[int, float]] = []
     episode_return, episode_returns = 0.0, []
     obs, _ = env.reset(seed=config.seed)
     step = 0
@@ -104,47 +174,21 @@ def train(
             episode_return = 0.0
             obs, _ = env.reset()
 
-        if step > config.learning_starts and step % config.train_freq == 0:
-            frac = min(1.0, step / config.total_steps)
-            for group in optimizer.param_groups:
-                group["lr"] = config.lr + frac * (config.lr_final - config.lr)
-            b_obs, b_act, b_rew, b_next, b_term = buffer.sample(config.batch_size, np_rng)
-            online_noise = q_net.sample_noise(noise_gen)
-            with torch.no_grad():
-                next_action = q_net(b_next, online_noise).argmax(dim=1, keepdim=True)
-                next_q = target_net(b_next, target_net.sample_noise(noise_gen)).gather(
-                    1, next_action
-                )
-                target = b_rew + config.gamma * (1.0 - b_term) * next_q.squeeze(1)
-            q_taken = q_net(b_obs, online_noise).gather(1, b_act.unsqueeze(1)).squeeze(1)
-            loss = nn.functional.smooth_l1_loss(q_taken, target)
-            optimizer.zero_grad()
-            loss.backward()
-            nn.utils.clip_grad_norm_(q_net.parameters(), config.max_grad_norm)
-            optimizer.step()
-
+        learning = step > config.learning_starts
+        if learning and step % config.train_freq == 0:
+            batch = buffer.sample(config.batch_size, np_rng)
+            update(q_net, target_net, optimizer, batch, config, step, noise_gen)
         if step % config.target_sync == 0:
             target_net.load_state_dict(q_net.state_dict())
-
-        if step > config.learning_starts and step % config.eval_every == 0:
-            tuning_seed = config.seed + TUNING_SEED_OFFSET
-            mean = float(greedy_returns(q_net, config, config.eval_episodes, tuning_seed).mean())
-            curve.append((step, mean))
-            if mean > best_return:
-                best_return, best_step = mean, step
-                best_state = copy.deepcopy(q_net.state_dict())
+        if learning and step % config.eval_every == 0:
+            mean = tuning.evaluate(q_net, config, step)
             if progress:
-                recent = np.mean(episode_returns[-20:]) if episode_returns else float("nan")
-                print(
-                    f"step {step:>8d}  eval {mean:8.1f}  best {best_return:8.1f}@{best_step}  "
-                    f"train(20) {recent:8.1f}  {time.perf_counter() - started:6.0f}s",
-                    flush=True,
-                )
+                print_progress(step, mean, tuning, episode_returns, started)
             if mean >= config.early_stop_return:
                 break
     env.close()
 
-    q_net.load_state_dict(best_state)
+    q_net.load_state_dict(tuning.best_state)
     final = greedy_returns(q_net, config, config.final_eval_episodes, config.final_eval_seed)
     return save_policy(
         policy_path,
@@ -156,19 +200,14 @@ def train(
             "hidden_sizes": list(config.hidden_sizes),
             "sigma0": config.sigma0,
         },
-        state_dict=best_state,
+        state_dict=tuning.best_state,
         env_id=config.env_id,
         train_config=config.as_dict(),
         final_returns=final,
         final_eval_seed=config.final_eval_seed,
-        tuning={
-            "episodes": config.eval_episodes,
-            "seeds_start": config.seed + TUNING_SEED_OFFSET,
-            "best_mean": float(best_return),
-            "best_step": best_step,
-        },
+        tuning=tuning.report(),
         steps_run=step,
-        learning_curve=curve,
+        learning_curve=tuning.curve,
         wall_time_s=time.perf_counter() - started,
         trainer={"algorithm": "NoisyNet double DQN (oodrl)"},
     )
