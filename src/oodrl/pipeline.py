@@ -57,6 +57,7 @@ VERB_COMPONENTS: dict[str, tuple[str, ...]] = {
     "collect-id": ("environment",),
     "collect-eval": ("environment",),
     "render": ("environment",),
+    "metrics": ("detectors",),  # every benchmark detector, built for its latency
 }
 
 _DOTTED = r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*"
@@ -266,7 +267,7 @@ def stage_kind(cmd: str) -> tuple[str, str | None] | None:
     if len(words) < 2 or words[0] != "oodrl":
         return None
     verb, kinds = words[1], VERB_COMPONENTS.get(words[1], ())
-    named = bool(kinds) and kinds[0] != "environment" and len(words) > 2
+    named = bool(kinds) and kinds[0] in ("detector", "injector") and len(words) > 2
     return verb, words[2] if named else None
 
 
@@ -280,8 +281,12 @@ def component_modules(verb: str, name: str | None, params: dict[str, Any]) -> li
     `class:` path in params, else the registered path of `name` (or of env.id)."""
     modules = []
     for kind in VERB_COMPONENTS.get(verb, ()):
-        path = _component_path(kind, name, params)
-        modules.append(path.partition(":")[0])
+        if kind == "detectors":
+            names = (params.get("benchmark") or {}).get("detectors") or []
+            paths = [_component_path("detector", each, params) for each in names]
+        else:
+            paths = [_component_path(kind, name, params)]
+        modules += [path.partition(":")[0] for path in paths]
     return modules
 
 

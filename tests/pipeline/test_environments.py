@@ -1,0 +1,58 @@
+"""An environment's own pipeline (SPEC §12): pipeline/cartpole/dvc.yaml, generated from the
+template, reads pipeline/cartpole/params.yaml, which extends the shared params.yaml."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+from conftest import DETECTORS, INJECTORS, tiny_params
+
+from oodrl.store import read_trajectories
+from oodrl.testing.pipeline import copy_project, repro, run
+
+pytestmark = pytest.mark.slow
+
+ENV = "pipeline/cartpole"
+
+
+@pytest.fixture(scope="module")
+def cartpole_repo(tmp_path_factory, repo_root, _default_params) -> Path:
+    if not (repo_root / ENV / "models" / "policy.pt").is_file():
+        pytest.skip(f"{ENV}/models/policy.pt is not there yet")
+    repo = copy_project(repo_root, tmp_path_factory.mktemp("env") / "repo")
+    (repo / "params.yaml").write_text(yaml.safe_dump(tiny_params(_default_params)))
+    local = yaml.safe_load((repo / ENV / "params.yaml").read_text())
+    local["env"] = {**local.get("env", {}), "T": 60, "onset": None}
+    (repo / ENV / "params.yaml").write_text(yaml.safe_dump(local, sort_keys=False))
+    run(repo, "oodrl", "pipeline", "write")
+    run(repo, "git", "add", "-A")
+    run(repo, "git", "commit", "-q", "-m", "tiny params")
+    repro(repo, f"{ENV}/dvc.yaml")
+    return repo
+
+
+def _ran(repo: Path) -> set[str]:
+    return {name.split(":", 1)[1] for name in repro(repo, f"{ENV}/dvc.yaml")}
+
+
+def test_environment_pipeline_builds_in_its_directory(cartpole_repo):
+    env = cartpole_repo / ENV
+    results = yaml.safe_load((env / "reports/results.yaml").read_text())
+    anomaly = {(r["detector"], r["anomaly"]) for r in results["records"] if r["kind"] == "anomaly"}
+    assert anomaly == {(d, i) for d in DETECTORS for i in INJECTORS}
+    attrs = read_trajectories(env / "data/id.zarr", stage="collect_id").attrs
+    assert (attrs["env_id"], attrs["T"]) == ("CartPole-v1", 60)
+    assert (env / "dvc.lock").is_file() and not (cartpole_repo / "data" / "id.zarr").exists()
+    assert _ran(cartpole_repo) == set()
+
+
+def test_a_shared_detector_knob_reruns_that_detector_in_the_environment(cartpole_repo):
+    params = yaml.safe_load((cartpole_repo / "params.yaml").read_text())
+    params["detectors"]["kde_density"]["threshold_percentile"] = 95.0
+    (cartpole_repo / "params.yaml").write_text(yaml.safe_dump(params))
+    assert _ran(cartpole_repo) == {
+        "check_params", "fit@kde_density", "score_clean@kde_density",
+        *(f"score@kde_density-{i}" for i in INJECTORS), "metrics", "render",
+    }  # fmt: skip
