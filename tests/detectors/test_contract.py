@@ -102,27 +102,23 @@ def test_not_fitted(name):
     check_not_fitted(make(name), EVALUATION[0])
 
 
+@pytest.mark.parametrize(
+    "check",
+    [check_reproducible, check_global_random_state, check_scores_use_the_data],
+    ids=lambda check: check.__name__,
+)
 @by_name_and_actions
-def test_reproducible(name, actions):
+def test_fresh_fits(name, actions, check):
     fit, _, evaluation = SPLITS[actions]
-    check_reproducible(lambda: make(name), fit, evaluation)
+    check(lambda: make(name), fit, evaluation)
 
 
+@pytest.mark.parametrize(
+    "check", [check_score_is_pure, check_pickle_roundtrip], ids=lambda check: check.__name__
+)
 @by_name_and_actions
-def test_global_random_state_untouched(name, actions):
-    fit, _, evaluation = SPLITS[actions]
-    check_global_random_state(lambda: make(name), fit, evaluation)
-
-
-@by_name_and_actions
-def test_scores_use_the_data(name, actions):
-    fit, _, evaluation = SPLITS[actions]
-    check_scores_use_the_data(lambda: make(name), fit, evaluation)
-
-
-@by_name_and_actions
-def test_score_is_pure(name, actions):
-    check_score_is_pure(fitted(name, actions), SPLITS[actions][2])
+def test_fitted(name, actions, check):
+    check(fitted(name, actions), SPLITS[actions][2])
 
 
 @by_name_and_actions
@@ -133,11 +129,6 @@ def test_wrong_state_dim(name, actions):
 @by_name_and_actions
 def test_threshold(name, actions):
     check_threshold(fitted(name, actions), SPLITS[actions][1])
-
-
-@by_name_and_actions
-def test_pickle_roundtrip(name, actions):
-    check_pickle_roundtrip(fitted(name, actions), SPLITS[actions][2])
 
 
 @pytest.mark.parametrize("actions", ACTIONS, ids=ACTIONS)

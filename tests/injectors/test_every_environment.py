@@ -11,6 +11,7 @@ from functools import cache
 
 import numpy as np
 import pytest
+from recording import Recording
 from rollout_policies import LinearPolicy
 
 from oodrl.core.adapter import EnvironmentAdapter
@@ -152,24 +153,6 @@ def same_action(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a == b).reshape(*a.shape[:2], -1).all(axis=-1)
 
 
-class Recording:
-    """Wraps a scaling fault: per labelled step, whether it wrote, and the states involved."""
-
-    def __init__(self, inner) -> None:
-        self.inner = inner
-        self.calls: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
-
-    def before_step(self, t, commanded, sim):
-        self._before = sim.read_state()
-        return self.inner.before_step(t, commanded, sim)
-
-    def after_step(self, t, observation, commanded, sim):
-        own = sim.read_state()
-        returned = self.inner.after_step(t, observation, commanded, sim)
-        self.calls.append((t, np.array(commanded), self._before, own, sim.read_state()))
-        return returned
-
-
 @pytest.mark.parametrize("env_id", ENV_IDS)
 @pytest.mark.parametrize("name", ["dynamics_scaling", "action_conditioned_dynamics"])
 def test_scaling_faults_scale_the_state_vector_increment(name, env_id):
@@ -183,7 +166,7 @@ def test_scaling_faults_scale_the_state_vector_increment(name, env_id):
     atol = 2e-6 if env_id.startswith("LunarLander") else 0.0
     scaled = 0
     for fault in faults:
-        for _, commanded, before, own, written in fault.calls:
+        for _, before, own, commanded, written, _ in fault.calls:
             if name == "action_conditioned_dynamics" and not applies(env_id, commanded):
                 np.testing.assert_array_equal(written, own)
                 continue

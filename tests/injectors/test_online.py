@@ -2,6 +2,7 @@ import pickle
 
 import numpy as np
 import pytest
+from recording import Recording
 from rollout_policies import HeuristicPolicy
 
 from oodrl.core.injector import Fault
@@ -100,28 +101,6 @@ def test_stuck_actuator_holds_with_probability_severity():
     assert abs((executed == held)[informative].mean() - 0.5) < 0.1
 
 
-class Recording(Fault):
-    """Wraps a fault and records, per step, the simulator's state before the step, its own
-    state after it, the commanded action, the state after the fault, and the observation."""
-
-    def __init__(self, inner: Fault) -> None:
-        self.inner = inner
-        self.calls: list[tuple[int, np.ndarray, np.ndarray, int, np.ndarray, np.ndarray]] = []
-        self._before: np.ndarray | None = None
-
-    def before_step(self, t, commanded, sim):
-        self._before = sim.read_state()
-        return self.inner.before_step(t, commanded, sim)
-
-    def after_step(self, t, observation, commanded, sim):
-        own = sim.read_state()
-        returned = self.inner.after_step(t, observation, commanded, sim)
-        self.calls.append(
-            (t, self._before, own, int(commanded), sim.read_state(), np.array(returned))
-        )
-        return returned
-
-
 def expected_factor(name: str, severity: float, t: int, commanded: int) -> float:
     full = 1.0 + 1.5 * severity
     if name == "action_conditioned_dynamics":
@@ -145,7 +124,7 @@ def test_written_increments_are_the_simulators_increments_times_the_factor(name,
             # The state the policy acted on: after a reset, the reset observation's.
             np.testing.assert_array_equal(before, tset.states[j, t, :6])
             np.testing.assert_array_equal(returned, tset.next_states[j, t])
-            factor = expected_factor(name, severity, t, commanded)
+            factor = expected_factor(name, severity, t, int(commanded))
             # Box2D keeps float32 bodies: the written state reads back to float32 rounding.
             np.testing.assert_allclose(written - before, factor * (own - before), atol=2e-6)
             np.testing.assert_array_equal(returned[:6], written.astype(np.float32))
