@@ -13,7 +13,6 @@ def fit_detector(params: Params, detector_name: str, id_path: Path, out: Path):
     id_set = read_trajectories(id_path, stage="collect_id")
     split = id_set.attrs["split"]
     detector = params.detector(detector_name)
-    detector.name = detector_name
     detector.fit(id_set.subset(split["fit"]).trajectories())
     detector.calibrate(id_set.subset(split["calibration"]).trajectories())
     save_detector(out, detector, detector_name, dict(params.detectors[detector_name]))
