@@ -132,7 +132,9 @@ def pedm_reference(detector: BaseDetector, trajectories: list) -> torch.Tensor:
         detector.target_standardizer_.transform(stacked(trajectories, increments))
     )
     steps = torch.as_tensor(np.concatenate([np.arange(t.T) for t in trajectories]))
-    noise = torch.as_tensor(detector._noise(max(t.T for t in trajectories)))
+    rng = np.random.default_rng(detector.seed)
+    # (T, M, K, d_s): the detector keeps the samples innermost.
+    noise = torch.as_tensor(detector._noise(rng, max(t.T for t in trajectories)).swapaxes(2, 3))
     mean, logvar = torch_gaussian_head(torch_outputs(detector.weights_, inputs))
     std = torch.exp(0.5 * logvar)
     samples = mean.transpose(0, 1)[:, :, None] + std.transpose(0, 1)[:, :, None] * noise[steps]

@@ -3,7 +3,19 @@
 Score direction: a larger score means more anomalous, for every detector.
 Subclasses implement `_fit` and one of `_score` (one trajectory) or `_score_many` (a batch);
 the base class owns `fit`, `calibrate`, `score`, the threshold rules and the alarms,
-so no detector can forget its threshold or mutate itself while scoring.
+so no detector can forget its threshold or mutate itself while scoring. `stream()` scores one
+step at a time (`oodrl.streaming`); a detector overrides it for constant work per step.
+
+Threshold rules (`threshold_rule`), from the scores of held-out clean trajectories:
+
+- ``"percentile"``: the `threshold_percentile`-th percentile of all their step scores, a
+  per-step false-alarm rate of about 1 − percentile/100, with no guarantee per trajectory;
+- ``"max"``: the largest of their step scores;
+- ``"episode_max"``: the conformal quantile of their n per-trajectory maxima, the
+  ⌈(n + 1)(1 − α)⌉-th smallest (`alpha`), so that a new clean trajectory of the same length,
+  exchangeable with them, raises any false alarm with probability at most α. The threshold is
+  the next float above that maximum: alarms are `score >= threshold`, and a tie with it must not
+  alarm. It needs n ≥ 1/α − 1 trajectories (else no finite threshold bounds the rate).
 
 Parameters are keyword-only dataclass fields (`@detector_parameters`): the generated `__init__`
 stores each keyword argument under its own name and does nothing else, which is scikit-learn's
@@ -14,18 +26,23 @@ A plugin may instead write an `__init__(self, *, my_param=..., **base)` that cal
 
 from __future__ import annotations
 
+import math
 from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from fractions import Fraction
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
 from oodrl.core.trajectory import Trajectory
-from oodrl.errors import ContractError, DetectorError, NotFittedError
+from oodrl.errors import ConfigError, ContractError, DetectorError, NotFittedError
 from oodrl.validation import Component, Interval, Options
 
-THRESHOLD_RULES = ("percentile", "max")
+if TYPE_CHECKING:
+    from oodrl.streaming import DetectorStream
+
+THRESHOLD_RULES = ("percentile", "max", "episode_max")
 
 #: Declares a detector class's parameters as keyword-only fields. Equality stays identity (as
 #: for any estimator: two equal-parameter detectors fitted on different data are not equal) and
@@ -57,11 +74,35 @@ class DetectorOutput:
                 )
 
 
-def threshold_from_scores(scores: np.ndarray, rule: str, percentile: float) -> float:
-    """The alarm threshold from held-out clean scores: a percentile, or the maximum."""
+def threshold_from_scores(
+    scores: Sequence[np.ndarray], rule: str, percentile: float, alpha: float
+) -> float:
+    """The alarm threshold from held-out clean scores, one array per trajectory, by a rule of
+    THRESHOLD_RULES (see the module docstring)."""
+    if rule == "episode_max":
+        return episode_max_threshold(np.array([np.max(s) for s in scores]), alpha)
+    steps = np.concatenate(scores)
     if rule == "max":
-        return float(np.max(scores))
-    return float(np.percentile(scores, percentile))
+        return float(np.max(steps))
+    return float(np.percentile(steps, percentile))
+
+
+def episode_max_threshold(maxima: np.ndarray, alpha: float) -> float:
+    """Just above the ⌈(n + 1)(1 − α)⌉-th smallest of n per-trajectory maxima.
+
+    Split conformal prediction: for a new maximum exchangeable with the n, P(new > that order
+    statistic) ≤ α, the finite-sample correction being the n + 1 in place of n.
+    """
+    n = len(maxima)
+    # Fractions: (n + 1)(1 − α) in floats can land a hair above an integer and skip a rank.
+    rank = math.ceil(Fraction(n + 1) * (1 - Fraction(str(alpha))))
+    if rank > n:
+        raise ConfigError(
+            f"threshold_rule='episode_max' with alpha={alpha} needs at least "
+            f"{math.ceil(1 / alpha) - 1} held-out trajectories; got {n}. "
+            "Calibrate on more trajectories or raise 'alpha'."
+        )
+    return float(np.nextafter(np.sort(maxima)[rank - 1], np.inf))
 
 
 @detector_parameters
@@ -76,15 +117,21 @@ class BaseDetector(Component):
     name: ClassVar[str] = ""
     #: Whether fitting the detector needs torch (its fit stage then pays the import).
     uses_torch: ClassVar[bool] = False
+    #: Whether z_t is a function of step t alone (s_t, a_t, s_{t+1}), computed by
+    #: row-independent arithmetic: `stream()` then scores each step on its own.
+    row_independent: ClassVar[bool] = False
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
         "threshold_rule": [Options(THRESHOLD_RULES)],
         "threshold_percentile": [Interval(float, 0, 100, closed="both")],
+        "alpha": [Interval(float, 0, 1, closed="neither")],
         "seed": [Interval(int, 0, None)],
     }
 
     threshold_rule: str = "percentile"
     threshold_percentile: float = 99.0
+    #: The bound on the clean-trajectory false-alarm probability of "episode_max".
+    alpha: float = 0.05
     seed: int = 0
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
@@ -135,11 +182,22 @@ class BaseDetector(Component):
 
     def calibrate(self, trajectories: Sequence[Trajectory]) -> BaseDetector:
         """Set `threshold_` from held-out clean trajectories by the declared rule."""
-        scores = np.concatenate([o.scores for o in self._checked_scores(list(trajectories))])
+        scores = [o.scores for o in self._checked_scores(list(trajectories))]
         self.threshold_ = threshold_from_scores(
-            scores, self.threshold_rule, self.threshold_percentile
+            scores, self.threshold_rule, self.threshold_percentile, self.alpha
         )
         return self
+
+    def stream(self) -> DetectorStream:
+        """A streaming scorer: one step in, the scores that became known out (SPEC §13).
+
+        A `row_independent` detector scores each step on its own; otherwise this default
+        re-scores the stream so far at every step (exact when z_t reads no step after
+        t + latency, but not constant work), and a detector overrides it (`oodrl.streaming`).
+        """
+        from oodrl.streaming import ReplayStream, RowStream
+
+        return RowStream(self) if self.row_independent else ReplayStream(self)
 
     def score(self, trajectory: Trajectory) -> DetectorOutput:
         return self.score_many([trajectory])[0]
@@ -151,17 +209,23 @@ class BaseDetector(Component):
             return outputs
         return [DetectorOutput(o.scores, o.scores >= threshold, threshold) for o in outputs]
 
-    def _checked_scores(self, trajectories: list[Trajectory]) -> list[DetectorOutput]:
+    def _require_fitted(self) -> None:
         if not hasattr(self, "state_dim_"):
             raise NotFittedError(f"{self.name} is not fitted: call fit() before scoring.")
+
+    def _require_state_dim(self, trajectory: Trajectory) -> None:
+        if trajectory.state_dim != self.state_dim_:
+            raise ContractError(
+                f"{self.name} was fitted on state dimension {self.state_dim_}; "
+                f"got a trajectory with state dimension {trajectory.state_dim}."
+            )
+
+    def _checked_scores(self, trajectories: list[Trajectory]) -> list[DetectorOutput]:
+        self._require_fitted()
         if not trajectories:
             return []
         for t in trajectories:
-            if t.state_dim != self.state_dim_:
-                raise ContractError(
-                    f"{self.name} was fitted on state dimension {self.state_dim_}; "
-                    f"got a trajectory with state dimension {t.state_dim}."
-                )
+            self._require_state_dim(t)
         outputs = []
         for index, (t, raw) in enumerate(
             zip(trajectories, self._score_many(trajectories), strict=True)

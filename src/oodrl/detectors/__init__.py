@@ -5,8 +5,11 @@ nothing heavy: each detector's module loads only when the registry is asked for 
 register through the `oodrl.detectors` entry-point group.
 
 Besides its own parameters (see each class), every detector takes `threshold_rule`
-("percentile", or "max" = the largest held-out score; default "percentile", `pedm` "max"),
-`threshold_percentile` (default 99.0) and `seed` (default 0; weights, data order, subsamples).
+("percentile", "max" = the largest held-out score, or "episode_max" = a conformal bound α on
+the probability of any false alarm in a clean trajectory; default "percentile", `pedm` "max";
+see `oodrl.core.detector`), `threshold_percentile` (default 99.0), `alpha` (default 0.05) and
+`seed` (default 0; weights, data order, subsamples). `detector.stream()` scores step by step
+(`oodrl.streaming`).
 """
 
 from oodrl.registry import Registry

@@ -40,6 +40,8 @@ class Autoencoder(NeuralDetector, FeatureSetDetector):
     """
 
     name: ClassVar[str] = "autoencoder"
+    # z_t reads step t alone (s_t, a_t, s_{t+1}): a stream scores each step on its own.
+    row_independent: ClassVar[bool] = True
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
         "latent_dim": [Interval(int, 1, None)],

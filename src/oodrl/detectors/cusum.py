@@ -42,6 +42,7 @@ from oodrl.detectors.features import (
     stacked,
     stacked_features,
 )
+from oodrl.streaming import DetectorStream, StepScores
 from oodrl.validation import Interval, IsType, Options
 
 RESIDUALS = ("transition", "state")
@@ -137,6 +138,30 @@ def cusum(drift: np.ndarray, restarts: np.ndarray) -> np.ndarray:
     return np.concatenate(out)
 
 
+class CusumStream(DetectorStream):
+    """g_t by the closed form of `cusum`, step by step: the running sum S of the drift since
+    the last restart and its running minimum (the same additions in the same order)."""
+
+    def __init__(self, detector: Cusum) -> None:
+        super().__init__(detector)
+        self.total = self.lowest = 0.0
+        self.restart_next = True
+
+    def _update(self, step: Trajectory, t: int) -> StepScores:
+        drift = float(self.detector._drift([step])[0])
+        if self.restart_next:
+            self.total = self.lowest = drift
+        else:
+            self.total += drift
+            self.lowest = min(self.lowest, self.total)
+        self.restart_next = self.detector.reset_on_done and bool(step.dones[0])
+        return self.scored(t, np.array([self.total - min(self.lowest, 0.0)]))
+
+    def _flush(self) -> StepScores:
+        self.restart_next = True
+        return ()
+
+
 @detector_parameters
 class Cusum(BaseDetector):
     """One-sided CUSUM of a standardised residual: a transition residual or a state distance.
@@ -193,7 +218,13 @@ class Cusum(BaseDetector):
             restarts[1:] = trajectory.dones[:-1]
         return restarts
 
+    def _drift(self, trajectories: Sequence[Trajectory]) -> np.ndarray:
+        """e_t − ν − k of every step, stacked."""
+        return self._residuals(trajectories) - self.residual_mean_ - self.slack_
+
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
-        drift = self._residuals(trajectories) - self.residual_mean_ - self.slack_
-        scores = cusum(drift, stacked(trajectories, self._restarts))
+        scores = cusum(self._drift(trajectories), stacked(trajectories, self._restarts))
         return split_scores(scores, trajectories)
+
+    def stream(self) -> DetectorStream:
+        return CusumStream(self)

@@ -43,6 +43,8 @@ class EnsembleDisagreement(TransitionEnsemble):
     """
 
     name: ClassVar[str] = "ensemble_disagreement"
+    # z_t reads step t alone (s_t, a_t, s_{t+1}): a stream scores each step on its own.
+    row_independent: ClassVar[bool] = True
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
         "n_members": [Interval(int, 2, None)],

@@ -120,6 +120,8 @@ class KdeDensity(FeatureSetDetector):
     """
 
     name: ClassVar[str] = "kde_density"
+    # z_t reads step t alone (s_t, a_t, s_{t+1}): a stream scores each step on its own.
+    row_independent: ClassVar[bool] = True
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
         "bandwidth": [Options(BANDWIDTH_RULES), Interval(float, 0, None, closed="neither")],

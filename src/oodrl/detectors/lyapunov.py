@@ -25,6 +25,7 @@ reset, the one after the last step at the end of the trajectory). Nothing crosse
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import ClassVar
@@ -36,6 +37,7 @@ from oodrl.core.detector import BaseDetector, detector_parameters
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import Standardizer, seeded_subsample, split_scores
 from oodrl.errors import ContractError
+from oodrl.streaming import DetectorStream, StepScores
 from oodrl.validation import Interval
 
 
@@ -161,3 +163,108 @@ class LyapunovDivergence(BaseDetector):
         # numerics.log: numpy's log differs in the last bits between CPUs (SPEC §14).
         scores = total / horizon - numerics.log(initial + self.epsilon)
         return split_scores(scores, trajectories)
+
+    def stream(self) -> DetectorStream:
+        return LyapunovStream(self)
+
+
+@dataclass
+class _Pending:
+    """A step whose horizon is still running: its series position, its ID neighbour, the
+    initial distance and the sum of the log distances of the `terms` steps seen ahead."""
+
+    step: int
+    position: int
+    neighbour: int
+    initial: float
+    total: float = 0.0
+    terms: int = 0
+
+
+class LyapunovStream(DetectorStream):
+    """The episode series as it arrives: a ring of its last (m − 1)τ + 1 observations (and
+    its first, the edge padding) gives each new embedding; the steps whose horizon is running
+    (at most H) collect one log distance per new position, in the order `score` adds them.
+
+    z_t comes out with the update of step t + H, which brings s_{t+H}; at a `done` (or
+    `flush`), the episode's last observation ends the pending horizons early, as in `score`.
+    The KD-tree over the fit embeddings is built once per stream object.
+    """
+
+    def __init__(self, detector: LyapunovDivergence) -> None:
+        from scipy.spatial import cKDTree
+
+        super().__init__(detector)
+        self.tree = cKDTree(detector.vectors_[detector.anchors_])
+        self.recent: deque[np.ndarray] = deque(
+            maxlen=(detector.embedding_dim - 1) * detector.lag + 1
+        )
+        self.pending: deque[_Pending] = deque()
+        # The episode's first observation (the edge padding), the position of the newest one,
+        # and the newest step's next observation (the series' end if the stream ends there).
+        self.first: np.ndarray | None = None
+        self.position = -1
+        self.last_observation: np.ndarray | None = None
+
+    def _update(self, step: Trajectory, t: int) -> StepScores:
+        standardize = self.detector.standardizer_.transform
+        self.last_observation = standardize(step.next_states.astype(np.float64))[0]
+        ready = self._extend(standardize(step.states.astype(np.float64))[0], step=t)
+        if step.dones[0]:
+            ready += self._end_episode()
+        return ready
+
+    def _flush(self) -> StepScores:
+        return self._end_episode()
+
+    def _end_episode(self) -> StepScores:
+        """The series' last observation ends every pending horizon; a new episode begins."""
+        if not self.recent:
+            return ()
+        ready = self._extend(self.last_observation, step=None)
+        ready += self._finish(len(self.pending))
+        self.recent.clear()
+        return ready
+
+    def _extend(self, observation: np.ndarray, step: int | None) -> StepScores:
+        """Add the series' next position (a step's state, or with `step` None the episode's
+        last observation): one more term for every pending step, and a new pending step."""
+        detector = self.detector
+        if not self.recent:
+            self.first = observation
+            self.position = -1
+        self.position += 1
+        self.recent.append(observation)
+        vector = np.concatenate(
+            [
+                self.recent[-1 - k * detector.lag] if k * detector.lag <= self.position
+                else self.first
+                for k in range(detector.embedding_dim)
+            ]
+        )  # fmt: skip
+        if self.pending:
+            ahead = np.array([self.position - p.position for p in self.pending])
+            neighbours = np.array([p.neighbour for p in self.pending])
+            distance = np.linalg.norm(vector - detector.vectors_[neighbours + ahead], axis=1)
+            for pending, term in zip(
+                self.pending, numerics.log(distance + detector.epsilon).tolist(), strict=True
+            ):
+                pending.total += term
+                pending.terms += 1
+        ready = self._finish(sum(p.terms == detector.horizon for p in self.pending))
+        if step is not None:
+            initial, nearest = self.tree.query(vector[None])
+            neighbour = int(detector.anchors_[nearest[0]])
+            self.pending.append(_Pending(step, self.position, neighbour, float(initial[0])))
+        return ready
+
+    def _finish(self, count: int) -> StepScores:
+        """Score and drop the `count` oldest pending steps (z = mean term − log initial)."""
+        done = [self.pending.popleft() for _ in range(count)]
+        if not done:
+            return ()
+        total = np.array([p.total for p in done])
+        terms = np.array([p.terms for p in done])
+        initial = np.array([p.initial for p in done])
+        scores = total / terms - numerics.log(initial + self.detector.epsilon)
+        return self.scored(done[0].step, scores)

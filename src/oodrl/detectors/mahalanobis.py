@@ -33,6 +33,8 @@ class MahalanobisDistance(FeatureSetDetector):
     """
 
     name: ClassVar[str] = "mahalanobis_distance"
+    # z_t reads step t alone (s_t, a_t, s_{t+1}): a stream scores each step on its own.
+    row_independent: ClassVar[bool] = True
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
         "ridge": [Interval(float, 0, None, closed="neither")],

@@ -35,6 +35,7 @@ from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import increments, split_scores, stacked
 from oodrl.detectors.mlp import gaussian_mean_and_logvar
 from oodrl.detectors.neural import TransitionEnsemble, chunked_scores
+from oodrl.streaming import DetectorStream, StepScores
 from oodrl.validation import Interval
 
 
@@ -79,17 +80,27 @@ class Pedm(TransitionEnsemble):
             trajectories, "gaussian_nll", outputs_per_coordinate=2, bootstrap=False
         )
 
-    def _noise(self, horizon: int) -> np.ndarray:
-        """ε of shape (horizon, M, K, d_s); row t is the same whatever the horizon."""
-        rng = np.random.default_rng(self.seed)
-        return rng.standard_normal((horizon, self.n_members, self.n_samples, self.state_dim_))
+    def stream(self) -> DetectorStream:
+        return PedmStream(self)
+
+    def _noise(self, rng: np.random.Generator, steps: int) -> np.ndarray:
+        """ε of the next `steps` steps from `rng`, (steps, M, d_s, K), samples innermost (so the
+        sum over coordinates runs on whole rows). A generator drawn step by step gives the rows
+        of one draw of them all: a stream draws as it goes."""
+        shape = (steps, self.n_members, self.n_samples, self.state_dim_)
+        return np.ascontiguousarray(rng.standard_normal(shape).swapaxes(2, 3))
 
     def _score_many(self, trajectories: Sequence[Trajectory]) -> list[np.ndarray]:
+        steps = np.concatenate([np.arange(t.T) for t in trajectories])
+        noise = self._noise(np.random.default_rng(self.seed), max(t.T for t in trajectories))
+        return split_scores(self._min_sampled_errors(trajectories, noise, steps), trajectories)
+
+    def _min_sampled_errors(
+        self, trajectories: Sequence[Trajectory], noise: np.ndarray, steps: np.ndarray
+    ) -> np.ndarray:
+        """z of every step of `trajectories`, stacked; step i uses the noise `noise[steps[i]]`."""
         inputs = self._standardized_inputs(trajectories)
         targets = self.target_standardizer_.transform(stacked(trajectories, increments))
-        steps = np.concatenate([np.arange(t.T) for t in trajectories])
-        # (T, M, d_s, K): samples innermost, so the sum over coordinates runs on whole rows.
-        noise = np.ascontiguousarray(self._noise(max(t.T for t in trajectories)).swapaxes(2, 3))
 
         def min_sampled_error(outputs: np.ndarray, rows: slice) -> np.ndarray:
             mean, logvar = gaussian_mean_and_logvar(outputs.transpose(1, 0, 2))  # (n, M, d_s)
@@ -102,5 +113,21 @@ class Pedm(TransitionEnsemble):
             errors *= errors
             return errors.sum(axis=2).reshape(len(errors), -1).min(axis=1)
 
-        scores = chunked_scores(self.weights_, inputs, min_sampled_error)
-        return split_scores(scores, trajectories)
+        return chunked_scores(self.weights_, inputs, min_sampled_error)
+
+
+class PedmStream(DetectorStream):
+    """Scores each step on its own, drawing its noise from a generator that follows the
+    stream's step index, as `Pedm.score` indexes its noise by step."""
+
+    def __init__(self, detector: Pedm) -> None:
+        super().__init__(detector)
+        self.noise_rng = np.random.default_rng(detector.seed)
+
+    def _flush(self) -> StepScores:
+        self.noise_rng = np.random.default_rng(self.detector.seed)
+        return ()
+
+    def _update(self, step: Trajectory, t: int) -> StepScores:
+        noise = self.detector._noise(self.noise_rng, 1)
+        return self.scored(t, self.detector._min_sampled_errors([step], noise, np.zeros(1, int)))

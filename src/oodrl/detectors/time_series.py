@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import decimal
 import functools
+from collections import deque
 from collections.abc import Sequence
 from typing import ClassVar
 
@@ -36,6 +37,7 @@ from oodrl.core.detector import BaseDetector, detector_parameters
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import GaussianModel, Standardizer, stacked
 from oodrl.errors import ContractError
+from oodrl.streaming import DetectorStream, StepScores
 from oodrl.validation import Interval, Options
 
 DISTANCES = ("mahalanobis", "robust_z")
@@ -194,3 +196,32 @@ class TimeSeriesFeatures(BaseDetector):
     def _score(self, trajectory: Trajectory) -> np.ndarray:
         scores = self._window_scores(self._descriptors(trajectory))
         return np.concatenate([np.full(self.window - 1, scores[0]), scores])
+
+    def stream(self) -> DetectorStream:
+        return WindowStream(self)
+
+
+class WindowStream(DetectorStream):
+    """The last L standardised states in a ring; each full window is described and scored
+    by the batch code. The update of step L − 1 also returns the L − 1 early steps (scored with
+    the first window, as `score` does); a stream shorter than the window has no scores
+    (`score` refuses such a trajectory)."""
+
+    def __init__(self, detector: TimeSeriesFeatures) -> None:
+        super().__init__(detector)
+        self.recent: deque[np.ndarray] = deque(maxlen=detector.window)
+
+    def _update(self, step: Trajectory, t: int) -> StepScores:
+        detector = self.detector
+        self.recent.extend(detector.state_standardizer_.transform(step.states.astype(np.float64)))
+        if len(self.recent) < detector.window:
+            return ()
+        descriptors = window_descriptors(np.array(self.recent), detector.window)
+        score = detector._window_scores(descriptors)
+        if t + 1 == detector.window:
+            return self.scored(0, np.repeat(score, detector.window))
+        return self.scored(t, score)
+
+    def _flush(self) -> StepScores:
+        self.recent.clear()
+        return ()

@@ -21,6 +21,7 @@ __all__ = [
     "check_score_is_pure",
     "check_scores_use_the_data",
     "check_state_dim",
+    "check_streaming",
     "check_threshold",
     "check_torch_free_import",
     "linear_system_trajectories",

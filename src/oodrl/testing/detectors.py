@@ -245,13 +245,50 @@ def check_state_dim(detector: BaseDetector, trajectory: Trajectory) -> None:
 
 def check_threshold(detector: BaseDetector, calibration: Sequence[Trajectory]) -> None:
     """`calibrate` sets the declared rule's threshold of the calibration scores; alarms follow."""
-    scores = np.concatenate([o.scores for o in detector.score_many(calibration)])
+    scores = [o.scores for o in detector.score_many(calibration)]
     detector.calibrate(calibration)
-    expected = threshold_from_scores(scores, detector.threshold_rule, detector.threshold_percentile)
+    expected = threshold_from_scores(
+        scores, detector.threshold_rule, detector.threshold_percentile, detector.alpha
+    )
     assert detector.threshold_ == expected, f"threshold {detector.threshold_} != {expected}"
     output = detector.score(calibration[0])
     assert output.threshold == expected
     np.testing.assert_array_equal(output.alarms, output.scores >= expected)
+
+
+def check_streaming(detector: BaseDetector, trajectories: Sequence[Trajectory]) -> None:
+    """`detector.stream()` fed the steps of each trajectory and flushed returns every step's
+    score once, in step order, equal bit for bit to `score`, with the same alarms. One stream
+    object serves all the trajectories in turn (`flush` starts a new stream)."""
+    stream = detector.stream()
+    for index, trajectory in enumerate(trajectories):
+        records = []
+        for t in range(trajectory.T):
+            records.extend(
+                stream.update(
+                    trajectory.states[t],
+                    trajectory.actions[t],
+                    trajectory.rewards[t],
+                    trajectory.next_states[t],
+                    trajectory.dones[t],
+                )
+            )
+        records.extend(stream.flush())
+        steps = [r.step for r in records]
+        assert steps == list(range(trajectory.T)), (
+            f"{detector.name}: trajectory {index} streamed steps {steps[:5]}…; expected each "
+            f"of 0..{trajectory.T - 1} once, in order."
+        )
+        streamed = np.array([r.score for r in records])
+        batch = detector.score(trajectory)
+        differ = np.flatnonzero(streamed.view(np.int64) != batch.scores.view(np.int64))
+        assert differ.size == 0, (
+            f"{detector.name}: trajectory {index} streamed {differ.size} scores that differ "
+            f"from score(), first at step {differ[:1]}: {streamed[differ[:1]]} vs "
+            f"{batch.scores[differ[:1]]}."
+        )
+        alarms = batch.alarms if batch.alarms is not None else np.zeros(trajectory.T, bool)
+        np.testing.assert_array_equal([r.alarm for r in records], alarms)
 
 
 def check_pickle_roundtrip(detector: BaseDetector, trajectories: Sequence[Trajectory]) -> None:
@@ -316,4 +353,5 @@ def check_detector(
     check_score_is_pure(fitted, eval_trajectories)
     check_state_dim(fitted, eval_trajectories[0])
     check_threshold(fitted, calibration_trajectories)
+    check_streaming(fitted, eval_trajectories)
     check_pickle_roundtrip(fitted, eval_trajectories)
