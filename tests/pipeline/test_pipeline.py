@@ -39,7 +39,8 @@ def test_full_pipeline_writes_every_output(built_repo):
 
 
 def test_up_to_date_after_repro(repo):
-    assert run(repo, "dvc", "status", "-q", check=False).returncode == 0
+    # The root pipeline's stages (the environments' pipelines are not built in the copy).
+    assert run(repo, "dvc", "status", "-q", "dvc.yaml", check=False).returncode == 0
     assert repro(repo) == []
 
 
@@ -112,12 +113,11 @@ def test_code_edit_reruns_exactly_the_stages_that_execute_it(repo, path):
 
 
 def test_code_edit_in_a_shared_module_reruns_every_stage_that_executes_it(repo):
-    """BaseDetector.score runs in every scoring stage, through the pickle; not in metrics."""
+    """BaseDetector.score runs in every scoring stage, through the pickle."""
     _append_comment(repo, "src/oodrl/core/detector.py")
     ran = set(repro(repo))
     assert {f"fit@{d}" for d in DETECTORS} | {f"score_clean@{d}" for d in DETECTORS} <= ran
     assert {f"score@{d}-{i}" for d in DETECTORS for i in INJECTORS} <= ran
-    assert not {"collect_id", "collect_eval"} & ran
 
 
 def test_lock_stays_small(repo):
