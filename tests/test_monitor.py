@@ -1,0 +1,142 @@
+"""The monitor wrapper on live episodes with a live fault: the alarm appears after the onset,
+on a discrete (CartPole) and a continuous-action (Pendulum) environment, with detectors fitted
+here on a few clean streams of the committed policies (SPEC §13)."""
+
+from __future__ import annotations
+
+import math
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from oodrl.core.detector import BaseDetector
+from oodrl.core.trajectory import Trajectory
+from oodrl.detectors import DETECTORS
+from oodrl.envs import ENVIRONMENTS
+from oodrl.envs.collect import collect
+from oodrl.errors import NotFittedError
+from oodrl.monitor import FaultInjection, OodMonitor, live_fault, run_monitor
+from oodrl.policies.load import load_policy
+from oodrl.stages.common import save_detector
+from oodrl.suite import policy_path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: env id → (detector, its params, online fault, onset, steps): a detector that sees the fault.
+CASES = {
+    "CartPole-v1": (
+        "mahalanobis_distance",
+        {"features": "transition"},
+        "dynamics_scaling",
+        60,
+        200,
+    ),
+    "Pendulum-v1": ("cusum", {}, "stuck_actuator", 66, 200),
+}
+
+
+@cache
+def _policy(env_id: str):
+    adapter = ENVIRONMENTS.get(env_id)()
+    return load_policy(policy_path(env_id, ROOT), "greedy", None, adapter.state_dim)
+
+
+@cache
+def _detector(env_id: str) -> BaseDetector:
+    name, params, _, _, steps = CASES[env_id]
+    clean = collect(ENVIRONMENTS.get(env_id)(), _policy(env_id), range(100, 106), steps)
+    trajectories = clean.trajectories()
+    return DETECTORS.get(name)(**params).fit(trajectories[:3]).calibrate(trajectories[3:])
+
+
+def _faulted_monitor(env_id: str, alarms: list) -> OodMonitor:
+    adapter = ENVIRONMENTS.get(env_id)()
+    _, _, fault, onset, _ = CASES[env_id]
+    env = adapter.make()
+    env = FaultInjection(
+        env, adapter.handle(env), live_fault(adapter, fault, 1.0, onset, {}, 0), onset
+    )
+    return OodMonitor(env, _detector(env_id), on_alarm=alarms.append)
+
+
+def _episode(env: OodMonitor, env_id: str, seed: int = 0):
+    """Drive the policy through one episode; the transitions and the infos of every step."""
+    observation, _ = env.reset(seed=seed)
+    steps, infos = [], []
+    for _ in range(CASES[env_id][4]):
+        action = _policy(env_id).act(observation[None])[0]
+        following, reward, terminated, truncated, info = env.step(action)
+        steps.append((observation, action, reward, following, terminated or truncated))
+        infos.append(info)
+        observation = following
+        if terminated or truncated:
+            break
+    return steps, infos
+
+
+@pytest.mark.parametrize("env_id", list(CASES), ids=list(CASES))
+def test_a_live_fault_raises_an_alarm_after_the_onset(env_id):
+    alarms: list = []
+    env = _faulted_monitor(env_id, alarms)
+    _, infos = _episode(env, env_id)
+    onset = CASES[env_id][3]
+    for info in infos:
+        assert isinstance(info["ood_score"], float) and not math.isnan(info["ood_score"])
+        assert info["ood_alarm"] == any(r.alarm for r in info["ood_scores"])
+    raised = [t for t, info in enumerate(infos) if info["ood_alarm"]]
+    assert any(t >= onset for t in raised), f"no alarm after the onset at {onset}"
+    assert [r.step for r in alarms] == [r.step for i in infos for r in i["ood_scores"] if r.alarm]
+
+
+@pytest.mark.parametrize("env_id", list(CASES), ids=list(CASES))
+def test_the_monitor_scores_are_the_detector_scores_of_the_episode(env_id):
+    env = _faulted_monitor(env_id, [])
+    steps, infos = _episode(env, env_id)
+    records = [r for info in infos for r in info["ood_scores"]]
+    assert [r.step for r in records] == list(range(len(steps)))
+    states, actions, rewards, following, dones = (np.array(x) for x in zip(*steps, strict=True))
+    trajectory = Trajectory(states, actions, rewards.astype(np.float64), following, dones)
+    batch = _detector(env_id).score(trajectory)
+    np.testing.assert_array_equal([r.score for r in records], batch.scores)
+    np.testing.assert_array_equal([r.alarm for r in records], batch.alarms)
+
+
+def test_reset_starts_a_new_stream():
+    env = _faulted_monitor("CartPole-v1", [])
+    observation, _ = env.reset(seed=1)
+    for _ in range(5):
+        observation, *_, info = env.step(_policy("CartPole-v1").act(observation[None])[0])
+    assert info["ood_scores"][0].step == 4
+    observation, _ = env.reset(seed=2)
+    *_, info = env.step(_policy("CartPole-v1").act(observation[None])[0])
+    assert info["ood_scores"][0].step == 0
+
+
+def test_a_pickled_detector_by_its_path(tmp_path):
+    path = tmp_path / "detector.pkl"
+    save_detector(path, _detector("CartPole-v1"), "mahalanobis_distance", {})
+    env = OodMonitor(ENVIRONMENTS.get("CartPole-v1")().make(), path)
+    env.reset(seed=0)
+    *_, info = env.step(0)
+    assert info["ood_scores"][0].step == 0
+
+
+def test_an_uncalibrated_detector_is_refused():
+    trajectories = collect(ENVIRONMENTS.get("CartPole-v1")(), _policy("CartPole-v1"), [7], 50)
+    detector = DETECTORS.get("cusum")().fit(trajectories.trajectories())
+    with pytest.raises(NotFittedError, match="calibrate"):
+        OodMonitor(ENVIRONMENTS.get("CartPole-v1")().make(), detector)
+
+
+def test_run_monitor_prints_alarms_and_a_summary():
+    lines: list[str] = []
+    summary = run_monitor(
+        "Pendulum-v1", "cusum", "stuck_actuator", 1.0, steps=200, fit_streams=3,
+        root=ROOT, echo=lines.append,
+    )  # fmt: skip
+    assert summary.onset == 66 and summary.first_alarm_step >= 66
+    assert summary.delay == summary.first_alarm_raised_at - 66
+    assert lines[-1] == summary.line() and "delay" in lines[-1]
+    assert any(line.startswith(f"step {summary.first_alarm_raised_at}: alarm") for line in lines)
