@@ -319,6 +319,20 @@ def metrics(
         run_metrics(config, scores, results, sweep_results, metrics_file, tables)
 
 
+@command("leaderboard")
+def leaderboard(
+    out: Annotated[Path, PathOption()],
+    root: Annotated[Path, typer.Option(help="the project root")] = Path("../.."),
+    params: ParamsOption = Path("../../params.yaml"),
+) -> None:
+    """Stage leaderboard: every environment's results -> the suite's cross-environment report."""
+    from oodrl.stages.leaderboard import run
+
+    config = _load(params)
+    with _stage("leaderboard"):
+        run(config, root, out)
+
+
 @command("render")
 def render(
     results: Annotated[Path, PathOption()],

@@ -27,6 +27,7 @@ from oodrl.pipeline import (
     write,
     write_stamps,
 )
+from oodrl.suite import PIPELINE_DIRS
 
 SOURCE_ROOT = Path(oodrl.__file__).resolve().parents[2]  # the checkout the stages import
 
@@ -51,7 +52,7 @@ def test_committed_pipelines_are_what_pipeline_write_writes(repo_root, monkeypat
 def test_a_hand_edited_pipeline_is_refused(tmp_path, repo_root):
     (tmp_path / "src").symlink_to(repo_root / "src")
     shutil.copy(repo_root / "params.yaml", tmp_path / "params.yaml")
-    assert write(tmp_path) == [tmp_path / "dvc.yaml"]
+    assert write(tmp_path) == [tmp_path / "dvc.yaml", tmp_path / "pipeline/suite/dvc.yaml"]
     check(tmp_path)
     with (tmp_path / "dvc.yaml").open("a") as pipeline:
         pipeline.write("# an edit\n")
@@ -89,7 +90,8 @@ def env_project(tmp_path, repo_root) -> Path:
 
 def test_environment_pipeline_paths_are_relative_to_its_directory(env_project):
     env = env_project / "pipeline" / "cartpole"
-    assert write(env_project) == [env_project / "dvc.yaml", env / "dvc.yaml"]
+    suite = env_project / "pipeline/suite/dvc.yaml"
+    assert write(env_project) == [env_project / "dvc.yaml", env / "dvc.yaml", suite]
     stages = yaml.safe_load((env / "dvc.yaml").read_text())["stages"]
     assert stages["check_params"]["deps"] == ["params.yaml", "../../params.yaml", "../../src/oodrl"]
     assert "--merged data/params.yaml" in stages["check_params"]["cmd"]
@@ -249,3 +251,13 @@ def test_stage_commands_import_only_modules_their_stamps_list(built_repo):
     assert {"check_params", "collect_id", "collect_ood", "fit", "score", "metrics", "render"} <= (
         checked
     )
+
+
+def test_the_suite_pipeline_reads_every_environments_results(repo_root):
+    stage = yaml.safe_load((repo_root / "pipeline/suite/dvc.yaml").read_text())["stages"]
+    deps = stage["leaderboard"]["deps"]
+    results = [d for d in deps if d.endswith("reports/results.yaml")]
+    assert len(results) == len(PIPELINE_DIRS)
+    assert "../../src/oodrl/metrics/leaderboard.py" in deps
+    root_stages = yaml.safe_load((repo_root / "dvc.yaml").read_text())["stages"]
+    assert "leaderboard" not in root_stages  # the root `dvc repro` stays the paper default
