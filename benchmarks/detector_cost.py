@@ -1,0 +1,105 @@
+"""Cost beside accuracy: per detector, fit time, pickled size and streaming latency per step
+(median and p99 of `stream().update`, one thread), on clean streams of a committed policy.
+
+    python benchmarks/detector_cost.py [--env LunarLander-v3] [--steps 200] [--fit 4] [names...]
+
+Detector parameters are the class defaults. Latency is measured over every step of `--score`
+streams fed one update at a time (flushes included), after one warm-up stream.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # before numpy, as in every oodrl stage
+
+import pickle  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def clean_streams(env_id: str, n: int, steps: int, first_seed: int = 20_000) -> list:
+    """`n` clean streams of `steps` steps of the environment's committed policy."""
+    from oodrl.envs import ENVIRONMENTS
+    from oodrl.envs.collect import collect
+    from oodrl.policies.load import load_policy
+    from oodrl.suite import policy_path
+
+    adapter = ENVIRONMENTS.get(env_id)()
+    policy = load_policy(policy_path(env_id, ROOT), "greedy", None, adapter.state_dim)
+    seeds = range(first_seed, first_seed + n)
+    return collect(adapter, policy, seeds, steps).trajectories()
+
+
+def stream_latencies(detector, trajectories) -> np.ndarray:
+    """Seconds of each `update` (the step's flush added to the last one), stream by stream."""
+    stream = detector.stream()
+    latencies = []
+    for trajectory in trajectories:
+        for t in range(trajectory.T):
+            args = (
+                trajectory.states[t],
+                trajectory.actions[t],
+                trajectory.rewards[t],
+                trajectory.next_states[t],
+                trajectory.dones[t],
+            )
+            start = time.perf_counter()
+            stream.update(*args)
+            if t == trajectory.T - 1:
+                stream.flush()
+            latencies.append(time.perf_counter() - start)
+    return np.array(latencies)
+
+
+def detector_cost(name: str, fit, calibration, scored) -> dict[str, float]:
+    from oodrl.detectors import DETECTORS
+
+    start = time.perf_counter()
+    detector = DETECTORS.get(name)().fit(fit)
+    fit_s = time.perf_counter() - start
+    detector.calibrate(calibration)
+    stream_latencies(detector, scored[:1])  # warm-up: imports, caches, the KD-tree
+    latencies = stream_latencies(detector, scored)
+    return {
+        "fit_s": fit_s,
+        "size_kib": len(pickle.dumps(detector, protocol=5)) / 1024,
+        "median_us": float(np.median(latencies)) * 1e6,
+        "p99_us": float(np.percentile(latencies, 99)) * 1e6,
+    }
+
+
+def main() -> None:
+    from oodrl.detectors import DETECTORS
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("names", nargs="*", default=DETECTORS.names())
+    parser.add_argument("--env", default="LunarLander-v3")
+    parser.add_argument("--steps", type=int, default=200)
+    parser.add_argument("--fit", type=int, default=4)
+    parser.add_argument("--score", type=int, default=2)
+    args = parser.parse_args()
+    data = clean_streams(args.env, 2 * args.fit + args.score + 1, args.steps)
+    fit, calibration = data[: args.fit], data[args.fit : 2 * args.fit]
+    scored = data[2 * args.fit :]
+    print(f"{args.env}: fit on {args.fit} x {args.steps} steps; latency over "
+          f"{args.score * args.steps} streamed steps, one thread")  # fmt: skip
+    print(f"{'detector':24} {'fit s':>8} {'size KiB':>9} {'median µs':>10} {'p99 µs':>9}")
+    with threadpool_limits(limits=1):
+        for name in args.names:
+            cost = detector_cost(name, fit, calibration, scored)
+            print(
+                f"{name:24} {cost['fit_s']:8.2f} {cost['size_kib']:9.1f} "
+                f"{cost['median_us']:10.0f} {cost['p99_us']:9.0f}",
+                flush=True,
+            )
+
+
+if __name__ == "__main__":
+    main()
