@@ -140,3 +140,20 @@ def test_run_monitor_prints_alarms_and_a_summary():
     assert summary.delay == summary.first_alarm_raised_at - 66
     assert lines[-1] == summary.line() and "delay" in lines[-1]
     assert any(line.startswith(f"step {summary.first_alarm_raised_at}: alarm") for line in lines)
+
+
+def test_the_monitor_command_prints_alarms_and_a_summary(monkeypatch):
+    from pathlib import Path
+
+    from typer.testing import CliRunner
+
+    from oodrl.cli import app
+
+    monkeypatch.chdir(Path(__file__).resolve().parents[1])
+    args = ["monitor", "--env", "CartPole-v1", "--detector", "mahalanobis_distance"]
+    result = CliRunner().invoke(app, [*args, "--fault", "dynamics_scaling", "--steps", "120"])
+    assert result.exit_code == 0, result.output
+    summary = result.output.strip().splitlines()[-1]
+    assert "onset at step 40" in summary and "false alarms before the onset" in summary
+    bad = CliRunner().invoke(app, [*args, "--fault", "no_such_fault"])
+    assert bad.exit_code != 0 and "Unknown injector 'no_such_fault'" in bad.output

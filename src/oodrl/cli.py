@@ -173,6 +173,26 @@ def evaluate_policy(
     )
 
 
+@command("monitor")
+def monitor(
+    detector: Annotated[
+        str, typer.Option(help="registered name (fitted here on clean streams) or a pickle")
+    ],
+    env: Annotated[str, typer.Option(help="environment of the suite")] = "LunarLander-v3",
+    fault: Annotated[str | None, typer.Option(help="online injector, live from the onset")] = None,
+    severity: Annotated[float, typer.Option(min=0.0, max=1.0)] = 1.0,
+    steps: Annotated[int, typer.Option(min=2, help="longest episode")] = 500,
+    onset: Annotated[int | None, typer.Option(help="fault onset (default steps // 3)")] = None,
+    seed: Annotated[int, typer.Option(min=0)] = 0,
+) -> None:
+    """Run the committed policy under the OOD monitor: alarms as they happen, then a summary."""
+    from oodrl.monitor import run_monitor
+
+    run_monitor(
+        env, detector, fault, severity, steps=steps, onset=onset, seed=seed, echo=typer.echo
+    )
+
+
 @command("show")
 def show(path: Annotated[Path, typer.Argument(help="results.yaml or sweep_results.yaml")]) -> None:
     """Render the tables of a results or sweep file in the terminal."""
