@@ -318,7 +318,7 @@ def test_following_the_readme_in_a_fresh_project(tmp_path, repo_root):
     results = yaml.safe_load((repo / "reports" / "results.yaml").read_text())
     for detector in added:
         assert any(r["detector"] == detector for r in results["records"]), detector
-    assert run(repo, "dvc", "status", "-q", check=False).returncode == 0, (
+    assert run(repo, "dvc", "status", "-q", "dvc.yaml", check=False).returncode == 0, (
         "the README's repro left stages pending"
     )
     check_inline_commands(repo, markdown, sections)

@@ -61,7 +61,7 @@ def test_failing_detector_names_itself_and_the_episode_and_keep_going_completes(
     kept = run(repo, "dvc", "repro", "-k", check=False, env=plugin_env)
     assert kept.returncode != 0
     assert "Running stage 'score@kde_density-stuck_actuator'" in kept.stdout
-    status = yaml.safe_load(run(repo, "dvc", "status", "--json").stdout) or {}
+    status = yaml.safe_load(run(repo, "dvc", "status", "--json", "dvc.yaml").stdout) or {}
     pending = {name for name in status if name not in ("metrics", "render")}
     assert pending and all("exploding" in name for name in pending), sorted(pending)
 
@@ -85,7 +85,7 @@ def test_killed_stage_leaves_no_half_written_output_and_next_repro_completes(rep
     assert not store.exists(), "a killed stage must not leave a store at its output path"
     ran = repro(repo)
     assert "collect_id" in ran
-    assert run(repo, "dvc", "status", "-q", check=False).returncode == 0
+    assert run(repo, "dvc", "status", "-q", "dvc.yaml", check=False).returncode == 0
     assert not list(store.parent.glob(".id.zarr.tmp-*"))
 
 
