@@ -47,7 +47,7 @@ def test_up_to_date_after_repro(repo):
 def test_injector_param_reruns_only_that_injector(repo):
     before = lock_hashes(repo)
     edit_params(repo, lambda p: p["anomaly"]["injectors"]["observation_delay"].update(max_delay=4))
-    status = run(repo, "dvc", "status", "--json").stdout
+    status = run(repo, "dvc", "status", "--json", "dvc.yaml").stdout
     assert sorted(json.loads(status)) == [
         "check_params", "collect_ood@observation_delay", "collect_sweep@observation_delay",
     ]  # fmt: skip
