@@ -15,6 +15,7 @@ import numpy as np
 
 from oodrl.core.trajectory import TrajectorySet
 from oodrl.errors import DetectorError
+from oodrl.registry import _project_dir_on_path
 from oodrl.stages.common import load_detector
 from oodrl.store import read_sweep, read_trajectories, severity_key, write_scores
 
@@ -45,6 +46,14 @@ def _score_episode(detector, name: str, trajectory, condition: str, episode: int
         ) from error
 
 
+def _fitted(detector_path: Path, detector_name: str):
+    """The fitted detector; a plugin's pickle refers to its module beside params.yaml, which
+    the `oodrl` command finds only with the project directory on sys.path (as the registry
+    adds it when params name the plugin)."""
+    _project_dir_on_path()
+    return load_detector(detector_path, stage=f"fit@{detector_name}")
+
+
 def _root_attrs(detector, name: str) -> dict:
     # Onset, offset and severity come from the scored stores' specs, not from params, so a
     # score stage depends on no params key: only its detector and its data.
@@ -52,7 +61,7 @@ def _root_attrs(detector, name: str) -> dict:
 
 
 def score_clean(detector_name: str, detector_path: Path, eval_path: Path, out: Path):
-    detector = load_detector(detector_path, stage=f"fit@{detector_name}")
+    detector = _fitted(detector_path, detector_name)
     clean = read_trajectories(eval_path, stage="collect_eval")
     scores = _scores(detector, detector_name, clean, "the clean evaluation set")
     write_scores(out, {CLEAN_GROUP: {"scores": scores}}, _root_attrs(detector, detector_name))
@@ -66,7 +75,7 @@ def score_injector(
     sweep_path: Path,
     out: Path,
 ):
-    detector = load_detector(detector_path, stage=f"fit@{detector_name}")
+    detector = _fitted(detector_path, detector_name)
     headline = read_trajectories(ood_path, stage=f"collect_ood@{injector_name}")
     sweep = read_sweep(sweep_path, stage=f"collect_sweep@{injector_name}")
     groups = {}
