@@ -9,11 +9,13 @@ console errors, uncaught exceptions and every request that left the machine's fi
 
 from __future__ import annotations
 
+import contextlib
 import fcntl
 import json
 import os
 import select
 import shutil
+import signal
 import subprocess
 import tempfile
 import time
@@ -106,7 +108,8 @@ def load_offline(
     chromium = chromium_path()
     if chromium is None:
         raise FileNotFoundError("chromium is not installed")
-    with tempfile.TemporaryDirectory() as profile:
+    # Chromium's helper processes may still write the profile as it is removed.
+    with tempfile.TemporaryDirectory(ignore_cleanup_errors=True) as profile:
         to_browser_read, to_browser = os.pipe()
         from_browser, from_browser_write = os.pipe()
         # bash (dash cannot name fds above 9) puts the browser's pipe ends on fds 3 and 4, where
@@ -131,6 +134,7 @@ def load_offline(
             pass_fds=(to_browser_read, from_browser_write),
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
+            start_new_session=True,  # its own process group: the helpers go with it
         )
         os.close(to_browser_read)
         os.close(from_browser_write)
@@ -138,7 +142,8 @@ def load_offline(
             pipe = _Pipe(process, to_browser, from_browser)
             return _inspect(pipe, url, probe, ready, timeout, settle)
         finally:
-            process.kill()
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(process.pid, signal.SIGKILL)
             process.wait()
             os.close(to_browser)
             os.close(from_browser)
