@@ -6,7 +6,7 @@ import pytest
 import yaml
 
 from oodrl.errors import RegistryError
-from oodrl.registry import Registry, import_path
+from oodrl.registry import Registry, add_project_dir_to_path, import_path
 
 
 def test_lazy_registry_resolves_and_suggests():
@@ -88,6 +88,13 @@ def test_module_class_path_imports_from_the_project_directory(project_dir):
     assert cls.name == "constant"
     # The project directory stays importable: unpickling a fitted plugin detector needs it.
     assert str(project_dir) in sys.path
+
+
+def test_add_project_dir_to_path_appends_it_once(project_dir):
+    assert add_project_dir_to_path() is True
+    assert sys.path[-1] == str(project_dir)  # appended: no project file shadows a package
+    assert add_project_dir_to_path() is False
+    assert sys.path.count(str(project_dir)) == 1
 
 
 def test_a_project_module_missing_a_dependency_names_the_dependency(project_dir):

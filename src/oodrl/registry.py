@@ -29,7 +29,7 @@ def _is_missing(error: ModuleNotFoundError, module_name: str) -> bool:
     )
 
 
-def _project_dir_on_path() -> bool:
+def add_project_dir_to_path() -> bool:
     """Add the current directory to sys.path; False if it was there already.
 
     The `oodrl` console script starts with its own bin directory as sys.path[0], not the
@@ -45,12 +45,16 @@ def _project_dir_on_path() -> bool:
     return True
 
 
+#: The old private name, until stages/score.py imports `add_project_dir_to_path`.
+_project_dir_on_path = add_project_dir_to_path
+
+
 def import_module(module_name: str) -> Any:
     """Import a module; one that is not installed is looked up in the project directory."""
     try:
         return importlib.import_module(module_name)
     except ModuleNotFoundError as error:
-        if not _is_missing(error, module_name) or not _project_dir_on_path():
+        if not _is_missing(error, module_name) or not add_project_dir_to_path():
             raise
     return importlib.import_module(module_name)
 
