@@ -18,8 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-import yaml
-
+from oodrl.config import read_params_data
 from oodrl.testing.kernels import kernel_selections
 from oodrl.testing.pipeline import copy_project, lock_hashes, repro, run
 
@@ -30,7 +29,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--params", type=Path, default=ROOT / "ci" / "params.yaml")
     args = parser.parse_args()
-    params = yaml.safe_load(args.params.read_text())
+    params = read_params_data(args.params)  # merged: the copy has no base file beside it
     runs = {}
     with tempfile.TemporaryDirectory(prefix="oodrl-reproduce-") as scratch:
         for name, selection in kernel_selections().items():

@@ -17,6 +17,7 @@ from typing import Any
 import pytest
 import yaml
 
+from oodrl.config import read_params_data
 from oodrl.testing.pipeline import copy_project, lock_hashes, run
 
 README = Path(__file__).resolve().parents[1] / "README.md"
@@ -123,8 +124,9 @@ def merge_params(params: dict[str, Any], snippet: dict[str, Any]) -> None:
 
 # -- the fresh project ---------------------------------------------------------------------------
 def tiny_params(repo_root: Path, knobs: dict[str, str]) -> dict[str, Any]:
-    """ci/params.yaml on one injector and the detectors the README's knobs name."""
-    params = yaml.safe_load((repo_root / "ci" / "params.yaml").read_text())
+    """ci/params.yaml (merged with the params it extends) on one injector and the detectors
+    the README's knobs name."""
+    params = read_params_data(repo_root / "ci" / "params.yaml")
     named = [k.split(".")[1] for k in knobs if k.startswith("detectors.")]
     injectors = [k.split(".")[2] for k in knobs if k.startswith("anomaly.injectors.")]
     params["benchmark"] = {
