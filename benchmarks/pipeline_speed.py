@@ -35,7 +35,7 @@ def simulation_floor(params_path: Path) -> tuple[float, int]:
     from oodrl.envs import ENVIRONMENTS
     from oodrl.envs.collect import collect
     from oodrl.policies.load import load_policy
-    from oodrl.stages.collect import eval_seeds, id_seeds
+    from oodrl.protocol import eval_seeds, id_seeds
 
     params = load_params(params_path)
     adapter = ENVIRONMENTS.get(params.env.id)()

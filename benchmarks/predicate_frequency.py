@@ -19,7 +19,7 @@ from oodrl.config import load_params
 from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import collect
 from oodrl.policies.load import load_policy
-from oodrl.stages.collect import eval_seeds
+from oodrl.protocol import eval_seeds
 from oodrl.suite import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[1]

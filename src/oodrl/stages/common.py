@@ -1,11 +1,9 @@
-"""What every stage shares: progress, timings, versions, detector pickles."""
+"""What every stage shares: timings, versions, detector pickles."""
 
 from __future__ import annotations
 
 import json
-import os
 import pickle
-import sys
 import time
 import warnings
 from collections.abc import Iterator
@@ -20,19 +18,6 @@ from oodrl.store import rerun_hint
 #: Side channel for per-stage wall times; deliberately not a DVC output (timings differ per run).
 TIMINGS_DIR = Path(".oodrl") / "timings"
 DETECTOR_FORMAT = "oodrl-detector"
-
-
-def progress_enabled(setting: str = "auto") -> bool:
-    """Progress bars on a terminal, never in CI or when output is redirected."""
-    if setting != "auto":
-        return setting == "always"
-    return sys.stderr.isatty() and not os.environ.get("CI")
-
-
-def progress_bar(total: int, description: str, setting: str = "auto"):
-    from tqdm import tqdm
-
-    return tqdm(total=total, desc=description, disable=not progress_enabled(setting), leave=False)
 
 
 @contextmanager

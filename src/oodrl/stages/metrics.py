@@ -16,7 +16,7 @@ from oodrl import yamlio
 from oodrl.config import Params
 from oodrl.core.spec import make_labels
 from oodrl.fileio import atomic_write_text
-from oodrl.stages.common import progress_bar
+from oodrl.progress import progress_bar
 from oodrl.stages.score import CLEAN_GROUP, HEADLINE_GROUP
 from oodrl.store import read_scores, severity_key
 

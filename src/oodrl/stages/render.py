@@ -77,7 +77,7 @@ def _device() -> str:
 def run_meta(params: Params, policy_path: Path) -> dict[str, Any]:
     """Provenance of this run. Not a DVC output: it holds timings and host facts by design."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.stages.collect import eval_seeds, id_seeds
+    from oodrl.protocol import eval_seeds, id_seeds
 
     timings = {}
     for path in sorted(TIMINGS_DIR.glob("*.json")):

@@ -16,7 +16,7 @@ from typing import Any
 
 from oodrl.config import Params
 from oodrl.errors import ConfigError, PolicyError
-from oodrl.stages.common import progress_enabled
+from oodrl.progress import progress_enabled
 
 RETRAIN_VARIABLE = "OODRL_RETRAIN_POLICY"
 #: The command that retrains on purpose (-s: nothing else is re-run with it).

@@ -1,0 +1,122 @@
+"""The benchmark protocol as params fix it (SPEC §1-§3): the seeds of the clean sets, the
+fit/calibration split of the ID set, and the trajectory sets the collection stages write.
+
+ID streams use seeds `seed + i`; evaluation streams `seed + eval_seed_offset + j`, so the two
+never share a seed. Every perturbed set re-uses the evaluation seeds: its episodes are the
+matched counterparts of the clean evaluation set's.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+
+from oodrl.config import Params
+from oodrl.core.adapter import EnvironmentAdapter
+from oodrl.core.policy import Policy
+from oodrl.core.trajectory import TrajectorySet
+from oodrl.envs import ENVIRONMENTS
+from oodrl.progress import progress_bar
+from oodrl.store import read_trajectories
+
+
+def id_seeds(params: Params) -> list[int]:
+    return [params.seed + i for i in range(params.data.n_id)]
+
+
+def eval_seeds(params: Params) -> list[int]:
+    return [params.seed + params.data.eval_seed_offset + j for j in range(params.data.n_ood)]
+
+
+def fit_calibration_split(params: Params) -> tuple[list[int], list[int]]:
+    """Trajectory indices of the fit and calibration parts: a seeded split by trajectory."""
+    order = np.random.default_rng(params.seed).permutation(params.data.n_id)
+    n_cal = params.data.n_calibration
+    return sorted(order[n_cal:].tolist()), sorted(order[:n_cal].tolist())
+
+
+def _adapter(params: Params) -> EnvironmentAdapter:
+    return ENVIRONMENTS.get(params.env.id)()
+
+
+def _policy(params: Params, policy_path: Path) -> Policy:
+    from oodrl.policies.load import load_policy
+
+    return load_policy(policy_path, mode=params.policy.mode)
+
+
+def _set_attrs(params: Params, adapter: EnvironmentAdapter, policy: Policy) -> dict:
+    """What every collected set records about the run that made it."""
+    return {
+        "env_id": params.env.id,
+        "env_version": adapter.version(),
+        "T": params.env.T,
+        "onset": params.env.resolved_onset,
+        "policy_mode": params.policy.mode,
+        "policy_sha256": policy.sha256,
+        "seed": params.seed,
+    }
+
+
+def _clean_set(params: Params, policy_path: Path, seeds: list[int], label: str, extra: dict):
+    from oodrl.envs.collect import collect
+
+    adapter, policy = _adapter(params), _policy(params, policy_path)
+    attrs = {**_set_attrs(params, adapter, policy), "mode": "clean", "spec": None, **extra}
+    with progress_bar(len(seeds), label, params.executor.progress) as bar:
+        return collect(
+            adapter,
+            policy,
+            seeds,
+            params.env.T,
+            policy_seed=params.seed,
+            workers=params.executor.resolved_workers,
+            attrs=attrs,
+            progress=bar.update,
+        )
+
+
+def id_set(params: Params, policy_path: Path) -> TrajectorySet:
+    """The clean in-distribution set; its attributes hold the fit/calibration split."""
+    fit, calibration = fit_calibration_split(params)
+    split = {"split": {"calibration": calibration, "fit": fit}}
+    return _clean_set(params, policy_path, id_seeds(params), "collect_id", split)
+
+
+def eval_set(params: Params, policy_path: Path) -> TrajectorySet:
+    """The clean evaluation set: the matched counterparts of every perturbed set."""
+    return _clean_set(params, policy_path, eval_seeds(params), "collect_eval", {})
+
+
+def perturbed_sets(
+    params: Params,
+    injector_name: str,
+    severities: list[float],
+    policy_path: Path,
+    eval_path: Path,
+) -> list[TrajectorySet]:
+    """The evaluation set with one injector's anomaly at each severity (SPEC §3).
+
+    Online severities are simulated together so their rollouts share the stage's workers.
+    """
+    from oodrl.injectors.apply import collect_online_sets, perturb_posthoc
+
+    injector = params.injector(injector_name)
+    onset, offset = params.env.resolved_onset, params.anomaly.offset
+    specs = [injector.spec(severity, onset, offset) for severity in severities]
+    if injector.mode == "posthoc":
+        clean = read_trajectories(eval_path, stage="collect_eval")
+        return [perturb_posthoc(injector, clean, spec, params.seed) for spec in specs]
+    adapter, policy = _adapter(params), _policy(params, policy_path)
+    seeds = eval_seeds(params)
+    label = f"{injector_name} ({len(specs)} severities)"
+    with progress_bar(len(seeds) * len(specs), label, params.executor.progress) as bar:
+        sets = collect_online_sets(
+            injector, adapter, policy, seeds, params.env.T, specs,
+            seed=params.seed, policy_seed=params.seed,
+            workers=params.executor.resolved_workers, progress=bar.update,
+        )  # fmt: skip
+    base = _set_attrs(params, adapter, policy)
+    return [dataclasses.replace(t, attrs={**base, **t.attrs}) for t in sets]
