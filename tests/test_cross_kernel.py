@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from oodrl.config import read_params_data
 from oodrl.testing.kernels import kernel_selections, output_hashes
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -18,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.mark.slow
 def test_outputs_are_byte_identical_under_every_kernel_selection(tmp_path: Path):
-    params = yaml.safe_load((ROOT / "ci" / "params.yaml").read_text())
+    params = read_params_data(ROOT / "ci" / "params.yaml")
     params["env"]["T"] = 40
     params["data"].update(n_id=4, n_ood=2)
     params_path = tmp_path / "params.yaml"

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
 from oodrl import yamlio
 from oodrl.config import merge_params, parse_params, read_params_data
@@ -21,7 +20,7 @@ from oodrl.stages import collect, fit, metrics, score
 from oodrl.suite import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[1]
-CI_PARAMS = yaml.safe_load((ROOT / "ci" / "params.yaml").read_text())
+CI_PARAMS = read_params_data(ROOT / "ci" / "params.yaml")
 TINY = {
     "env": {"T": 36},
     "data": {"n_id": 4, "n_ood": 2},

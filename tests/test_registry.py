@@ -5,6 +5,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from oodrl.config import read_params_data
 from oodrl.errors import RegistryError
 from oodrl.registry import Registry, add_project_dir_to_path, import_path
 
@@ -107,7 +108,7 @@ def test_the_oodrl_command_finds_a_plugin_beside_params_yaml(tmp_path, repo_root
     """The console script (sys.path[0] = its bin directory) validates params naming a
     `module:Class` in the directory it runs in."""
     (tmp_path / "oodrl_project_plugin.py").write_text(PROJECT_MODULE)
-    params = yaml.safe_load((repo_root / "ci" / "params.yaml").read_text())
+    params = read_params_data(repo_root / "ci" / "params.yaml")
     params["benchmark"]["detectors"].append("constant")
     params["detectors"]["constant"] = {"class": "oodrl_project_plugin:Constant"}
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
