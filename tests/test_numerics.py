@@ -81,3 +81,101 @@ def test_linear_rows_do_not_influence_each_other(n):
     batched = numerics.linear(x, w, b)
     one_by_one = np.concatenate([numerics.linear(x[i : i + 1], w, b) for i in range(n)])
     np.testing.assert_array_equal(batched, one_by_one)
+
+
+def exact_integer_linear(x: np.ndarray, w: np.ndarray, b: np.ndarray | None, scale: int):
+    """The reference for integer-valued inputs times 2^-scale: exact int64 sums, each rounded
+    to the nearest float32 through Fraction (a zero is +0)."""
+    xi = (x.astype(np.float64) * 2.0**scale).astype(np.int64)
+    wi = (w.astype(np.float64) * 2.0**scale).astype(np.int64)
+    total = xi @ np.swapaxes(wi, -1, -2)
+    if b is not None:
+        total = total + (np.broadcast_to(b, total.shape).astype(np.float64) * 4.0**scale).astype(
+            np.int64
+        )
+    flat = [numerics._nearest_float32(Fraction(int(t), 4**scale)) for t in total.ravel()]
+    return (np.array(flat, np.float32) + np.float32(0)).reshape(total.shape)
+
+
+def integer_valued(rng, shape, bits, scale):
+    return (rng.integers(-(2**bits), 2**bits, shape) * 2.0**-scale).astype(np.float32)
+
+
+@pytest.mark.parametrize(
+    ("every_up_to", "gathered_up_to"), [(4096, 64), (0, 64), (0, 0), (0, 10**9), (10**9, 64)]
+)
+@pytest.mark.parametrize("k", [3, 40, 160])
+@pytest.mark.parametrize("bits", [12, 20])
+def test_linear_every_bound_level_equals_exact_integer_sums(
+    monkeypatch, every_up_to, gathered_up_to, k, bits
+):
+    # Integer-valued float32 inputs: with 12-bit values many sums are exact float32 midpoints
+    # (ties), with 20-bit ones few are; and rows built to cancel, so that every level of the
+    # bound (row bound, every magnitude, gathered magnitudes, fsum) gets entries.
+    monkeypatch.setattr(numerics, "_EVERY_MAGNITUDE_UP_TO", every_up_to)
+    monkeypatch.setattr(numerics, "_GATHERED_MAGNITUDES_UP_TO", gathered_up_to)
+    rng = np.random.default_rng(k)
+    scale = 7
+    x = integer_valued(rng, (3, 70, k), bits, scale)
+    w = integer_valued(rng, (3, 50, k), bits, scale)
+    x[:, :10] = 0  # zero rows: ±0 products, a +0 result
+    x[:, 10:20, : k // 2 * 2 : 2] = x[:, 10:20, 1 : k // 2 * 2 : 2]  # x_2l = x_2l+1 ...
+    w[:, :25, : k // 2 * 2 : 2] = -w[:, :25, 1 : k // 2 * 2 : 2]  # ... cancels w_2l = −w_2l+1
+    b = integer_valued(rng, (3, 1, 50), bits, scale)
+    for bias in (None, b):
+        got = numerics.linear(x, w, bias)
+        expected = exact_integer_linear(x, w, bias, scale)
+        np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
+
+
+def test_linear_broadcasts_inputs_over_members():
+    rng = np.random.default_rng(3)
+    x = integer_valued(rng, (300, 20), 10, 5)
+    w = integer_valued(rng, (4, 30, 20), 10, 5)
+    b = integer_valued(rng, (4, 1, 30), 10, 5)
+    got = numerics.linear(x, w, b)
+    assert got.shape == (4, 300, 30)
+    for member in range(4):
+        np.testing.assert_array_equal(got[member], numerics.linear(x, w[member], b[member, 0]))
+    np.testing.assert_array_equal(got, exact_integer_linear(x, w, b, 5))
+
+
+def test_linear_zero_results_are_positive_zero():
+    # −0 products (0 × negative), and a tiny negative exact sum that rounds to zero.
+    x = np.array([[0.0, 0.0], [2.0**-100, 0.0]], np.float32)
+    w = np.array([[-1.0, -2.0], [-(2.0**-100), 1.0]], np.float32)
+    out = numerics.linear(x, w)
+    zeros = np.array([out[0, 0], out[0, 1], out[1, 1]])  # out[1, 0] = −2^-100
+    assert (zeros == 0).all()
+    assert not np.signbit(zeros).any()
+    assert out[1, 0] == np.float32(-(2.0**-100))
+
+
+def test_linear_overflowing_magnitude_takes_the_exact_path():
+    # |x|·|w| overflows float32 in the bound's product, yet the exact sum is small.
+    x = np.array([[3e38, 3e38, 1.0]], np.float32)
+    w = np.array([[1.0, -1.0, 0.5], [2.0, -2.0, 0.25]], np.float32)
+    np.testing.assert_array_equal(numerics.linear(x, w), np.array([[0.5, 0.25]], np.float32))
+
+
+def _index_order_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The definition of numerics.matmul: ((a_0 b_0 + a_1 b_1) + …) in index order."""
+    out = a[..., 0, None] * b[0]
+    for j in range(1, a.shape[-1]):
+        out = out + a[..., j, None] * b[j]
+    return out
+
+
+@pytest.mark.parametrize(
+    ("a_shape", "b_shape"),
+    [((469, 8, 32), (32, 16)), ((3000, 56), (56, 56)), ((2, 5), (5, 7)), ((4000, 8), (8,))],
+)
+def test_matmul_sums_in_index_order_in_either_layout(a_shape, b_shape):
+    rng = np.random.default_rng(0)
+    a = rng.standard_normal(a_shape) * np.logspace(-8, 8, a_shape[-1])
+    b = rng.standard_normal(b_shape)
+    b2 = b[:, None] if b.ndim == 1 else b
+    expected = _index_order_matmul(a, b2)
+    got = numerics.matmul(a, b)
+    assert got.flags.c_contiguous
+    np.testing.assert_array_equal(got, expected[..., 0] if b.ndim == 1 else expected)

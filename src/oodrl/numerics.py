@@ -49,43 +49,99 @@ _TANH_ULPS = 8
 
 
 def linear(x: np.ndarray, weight: np.ndarray, bias: np.ndarray | None = None) -> np.ndarray:
-    """``x @ weightᵀ + bias`` for float32 inputs, correctly rounded to float32.
+    """``x @ weightᵀ + bias`` for float32 inputs, correctly rounded to float32 (a zero is +0).
 
     ``x`` (..., n, k), ``weight`` (..., m, k), ``bias`` broadcastable to (..., n, m); leading
     axes broadcast like ``np.matmul`` (an ensemble: one weight per member).
+
+    Step 1 of the module docstring needs, per entry, the magnitude
+    ``M_ij = Σ_l |x_il||w_jl| + |b_ij|``. Computing it for every entry costs a second matrix
+    product, so on large outputs it is bounded in levels, each for the entries the previous one
+    left uncertain:
+
+    1. per row, ``M_ij ≤ R_i + max_j |b_ij|`` with ``R_i = Σ_l |x_il|·max_j |w_jl|``
+       (a matrix-vector product, broadcast along the row: the check needs no bound array);
+    2. many entries left (cancelling sums, e.g. gradients): every ``M_ij``, one matrix product;
+    3. few left: their own ``M_ij`` from the gathered (exact) float64 products;
+    4. ``math.fsum`` of those products: the exact sum, rounded once.
+
+    Small outputs and long sums compute every ``M_ij`` at once. R and the every-entry M are
+    float32 products bounded as in `_float32_bound`; the gathered M is a float64 sum of
+    non-negative exact products, at most γ_k below its exact value.
     """
     x32 = np.asarray(x, dtype=np.float32)
     w32 = np.asarray(weight, dtype=np.float32)
     x64 = x32.astype(np.float64)
-    w64_t = np.swapaxes(w32, -1, -2).astype(np.float64)
+    w64_t = np.swapaxes(w32, -1, -2).astype(np.float64)  # (..., k, m)
     y = x64 @ w64_t
     k = x32.shape[-1]
-    # Σ|x_i·w_i| only bounds the error, so float32 suffices once inflated by its own worst-case
-    # relative error, k·2⁻²⁴ (float32 products and sums of non-negative terms).
-    inflation = 1.0 + 2.0 * (k + 1) * 2.0**-24
-    magnitude = (np.abs(x32) @ np.abs(np.swapaxes(w32, -1, -2))).astype(np.float64) * inflation
-    b32 = b64 = None
+    abs_x, abs_w_t = np.abs(x32), np.swapaxes(np.abs(w32), -1, -2)
+    # Long sums (gradients over a batch) cancel, and leave many entries to level 2.
+    every = y.size <= _EVERY_MAGNITUDE_UP_TO or k >= _EVERY_MAGNITUDE_FROM_K
+    magnitude = _float32_bound(abs_x, abs_w_t if every else abs_w_t.max(axis=-1, keepdims=True))
+    b64 = abs_b = None
     if bias is not None:
-        b32 = np.broadcast_to(np.asarray(bias, dtype=np.float32), y.shape)
-        b64 = b32.astype(np.float64)
+        b64 = np.broadcast_to(np.asarray(bias, dtype=np.float32).astype(np.float64), y.shape)
         y += b64
-        magnitude += np.abs(b64)
+        abs_b = np.abs(b64)
+        magnitude = magnitude + (abs_b if every else abs_b.max(axis=-1, keepdims=True))
         k += 1
-    # γ_k = k·u / (1 − k·u) bounds the float64 sum's error in any summation order; doubling it
-    # leaves room for the rounding of forming y ± bound below.
-    gamma = k * _UNIT_ROUNDOFF / (1.0 - k * _UNIT_ROUNDOFF)
-    bound = 2.0 * gamma * magnitude + np.finfo(np.float64).tiny
-    result, uncertain = _round_within(y, bound)
-    if uncertain.any():
-        index = np.nonzero(uncertain)
-        lead, row, col = index[:-2], index[-2], index[-1]
-        rows = np.broadcast_to(x64, (*y.shape[:-1], x32.shape[-1]))
-        cols = np.broadcast_to(np.swapaxes(w64_t, -1, -2), (*y.shape[:-2], *w32.shape[-2:]))
-        # Products of two float32 numbers are exact in float64: the sums below are exact.
-        products = rows[(*lead, row)] * cols[(*lead, col)]
-        terms = products if b32 is None else np.concatenate([products, b64[index][:, None]], 1)
-        result[index] = [_nearest_float32_of_sum(t) for t in terms.tolist()]
+    # The float64 sum of the k terms (products, bias) is within γ_k·M of the exact one in any
+    # summation order, FMA or not. A computed bound B ≥ (1 − γ_k)·(its exact value) ≥ ½·M, so
+    # 2γ_k·B bounds the error (with room for the rounding of the bound's own product).
+    gamma = _gamma(k)
+    result, uncertain = _round_within(y, 2 * gamma * magnitude)
+    if not uncertain.any():
+        return result
+    index = _uncertain_index(uncertain)
+    values = y[index]
+    if not every and len(values) > _GATHERED_MAGNITUDES_UP_TO:  # level 2
+        magnitude = _float32_bound(abs_x, abs_w_t)
+        if abs_b is not None:
+            magnitude += abs_b
+        rounded, still = _round_within(values, 2 * gamma * magnitude[index])
+        result[index] = rounded
+        index, values = tuple(axis[still] for axis in index), values[still]
+    if not len(values):
+        return result
+    lead, i, j = index[:-2], index[-2], index[-1]
+    rows = np.broadcast_to(x64, (*y.shape[:-1], x32.shape[-1]))
+    cols = np.broadcast_to(np.swapaxes(w64_t, -1, -2), (*y.shape[:-2], *w32.shape[-2:]))
+    # Products of two float32 numbers are exact in float64: the sums below are exact.
+    products = rows[(*lead, i)] * cols[(*lead, j)]
+    if b64 is not None:
+        products = np.concatenate([products, b64[index][:, None]], 1)
+    rounded, still = _round_within(values, 2 * gamma * np.abs(products).sum(axis=1))
+    for entry in np.flatnonzero(still):
+        rounded[entry] = _nearest_float32_of_sum(products[entry].tolist())
+    result[index] = rounded
     return result
+
+
+#: Outputs up to this size, or sums of this many terms, get every entry's magnitude at once.
+_EVERY_MAGNITUDE_UP_TO = 4096
+_EVERY_MAGNITUDE_FROM_K = 128
+#: Up to this many entries left uncertain by the row bound get their magnitudes one by one.
+_GATHERED_MAGNITUDES_UP_TO = 64
+
+
+def _float32_bound(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """An upper bound on the exact ``a @ b`` of non-negative float32 arrays, as float64.
+
+    The float32 product (any kernel) rounds each of its at most 2k operations within a factor
+    1 ± 2⁻²⁴, or within 2⁻¹⁵⁰ absolute where a result is subnormal: the computed value times
+    1 + 4(k + 1)·2⁻²⁴, plus (k + 1)·2⁻¹⁴⁸, bounds the exact one (an overflow gives inf: those
+    entries are uncertain and go on to the exact path).
+    """
+    k = a.shape[-1]
+    with np.errstate(over="ignore"):
+        product = a @ b
+    return product.astype(np.float64) * (1.0 + 4.0 * (k + 1) * 2.0**-24) + (k + 1) * 2.0**-148
+
+
+def _gamma(n: int) -> float:
+    """Higham's γ_n = n·u / (1 − n·u): the relative error bound of a float64 sum of n terms."""
+    return n * _UNIT_ROUNDOFF / (1.0 - n * _UNIT_ROUNDOFF)
 
 
 def relu(x: np.ndarray) -> np.ndarray:
@@ -97,7 +153,9 @@ def tanh(x: np.ndarray) -> np.ndarray:
     x32 = np.asarray(x, dtype=np.float32)
     y = np.tanh(x32.astype(np.float64))
     bound = _TANH_ULPS * np.spacing(np.abs(y)) + np.finfo(np.float64).tiny
-    result, uncertain = _round_within(y, bound)
+    low, high = _round_ends(y, bound)
+    # Compared as values: tanh keeps its argument's sign, so a zero's sign is exact already.
+    result, uncertain = y.astype(np.float32), low != high
     if uncertain.any():
         with decimal.localcontext() as context:
             context.prec = 50
@@ -114,15 +172,34 @@ def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
     ``a`` (..., k), ``b`` (k, m) or (k,). Each step is one elementwise multiply and one add,
     which every CPU rounds identically; cost grows with k, so use it where k is small.
+
+    Every entry is ``((a_0 b_0 + a_1 b_1) + a_2 b_2) + …``, whichever layout the loop runs in:
+    with many rows and few columns the loop runs on the transposed (m, rows) layout, so that
+    each numpy call's inner loop is long and contiguous (the same products and sums, rounded
+    alike, so the same bits). The result is C-contiguous either way, so later reductions over
+    its axes run in the same order.
     """
     a = np.asarray(a, dtype=np.float64)
     b = np.asarray(b, dtype=np.float64)
     vector = b.ndim == 1
     if vector:
         b = b[:, None]
-    out = a[..., 0, None] * b[0]
-    for j in range(1, a.shape[-1]):
-        out += a[..., j, None] * b[j]
+    k, m = b.shape
+    lead = a.shape[:-1]
+    rows = math.prod(lead)
+    if m >= 4 and rows >= max(1024, 16 * m) and k > 1:
+        a_t = np.moveaxis(a, -1, 0).reshape(k, rows)  # a copy unless already (k, rows)
+        b_t = b[:, :, None]
+        out = np.multiply(b_t[0], a_t[0])
+        term = np.empty_like(out)
+        for j in range(1, k):
+            np.multiply(b_t[j], a_t[j], out=term)
+            out += term
+        out = np.ascontiguousarray(out.T).reshape(*lead, m)
+    else:
+        out = a[..., 0, None] * b[0]
+        for j in range(1, k):
+            out += a[..., j, None] * b[j]
     return out[..., 0] if vector else out
 
 
@@ -244,15 +321,49 @@ def _round_bits(y: np.ndarray, bits: int = CERTIFIED_BITS) -> np.ndarray:
 
 
 def _round_within(y: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """float32 rounding of ``y`` and a mask of entries where ``y ± bound`` round differently."""
-    # 2·bound also covers the rounding of y ± bound themselves.
-    low = (y - 2 * bound).astype(np.float32)
-    high = (y + 2 * bound).astype(np.float32)
-    return y.astype(np.float32), low != high
+    """Where ``y ± bound`` round to the same float32, that float32 (so also ``y``'s, and the
+    exact value's, if within ``bound`` of ``y``), a zero always +0; and the mask of the other
+    entries, whose values in the first array are to be replaced.
+
+    ``bound`` may be an array that broadcasts against ``y`` (one value per row). A result that
+    rounds to zero is +0 whatever its sign (the kernel's rounding could pick either): adding +0
+    turns −0 into +0 and leaves every other value as it is.
+    """
+    low, high = _round_ends(y, bound)
+    uncertain = low != high
+    low += np.float32(0)
+    return low, uncertain
+
+
+def _round_ends(y: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """float32 roundings of ``y − 2·bound − tiny`` and ``y + 2·bound + tiny``.
+
+    The doubling covers the rounding of forming the sums themselves, as long as
+    bound ≥ u·|y| (true of every error bound here, being ≥ γ·|y|); tiny keeps a zero bound from
+    certifying a float32 midpoint. The float64 sums are cast to float32 on the way out of the
+    ufunc, without a float64 temporary. Where the two agree, so does y's rounding, which lies
+    between them (rounding is monotonic).
+    """
+    margin = 2 * bound + np.finfo(np.float64).tiny
+    low = np.empty(np.shape(y), np.float32)
+    high = np.empty(np.shape(y), np.float32)
+    np.subtract(y, margin, out=low, casting="same_kind")
+    np.add(y, margin, out=high, casting="same_kind")
+    return low, high
+
+
+def _uncertain_index(uncertain: np.ndarray) -> tuple[np.ndarray, ...]:
+    """``np.nonzero(uncertain)``, faster for a sparse mask (flat search, then unravel)."""
+    return np.unravel_index(np.flatnonzero(uncertain), uncertain.shape)
 
 
 def _nearest_float32_of_sum(terms: list[float]) -> np.float32:
-    """The float32 nearest the exact sum of float64 ``terms`` (ties to even)."""
+    """The float32 nearest the exact sum of float64 ``terms`` (ties to even); a zero is +0, as
+    in `_round_within`."""
+    return _nearest_signed_float32_of_sum(terms) + np.float32(0)
+
+
+def _nearest_signed_float32_of_sum(terms: list[float]) -> np.float32:
     total = math.fsum(terms)  # the exact sum, correctly rounded to float64
     rounded = np.float32(total)
     # Rounding twice (exact → float64 → float32) differs from rounding once only when the float64
