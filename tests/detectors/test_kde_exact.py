@@ -88,3 +88,26 @@ def test_epsilon_is_added_to_the_density():
     capped = KdeDensity(epsilon=1e-6).fit([fit]).score(scored).scores
     np.testing.assert_allclose(capped, -np.log(np.exp(-plain) + 1e-6), rtol=1e-9)
     assert capped[1] == pytest.approx(-np.log(1e-6))
+
+
+def test_fast_path_equals_the_exact_path_on_every_row(monkeypatch):
+    # The BLAS exponents and numpy's exp/log are certified against the index-order exponents
+    # summed in decimal: forcing that exact path on every row must change no bit.
+    from oodrl import numerics
+
+    rng = np.random.default_rng(5)
+    reference = rng.standard_normal((300, 4))
+    x = np.vstack(
+        [
+            rng.standard_normal((200, 4)),
+            rng.standard_normal((30, 4)) * np.logspace(0.5, 3, 30)[:, None],
+        ]
+    )
+    fast = gaussian_kde_logpdf(x, reference, 0.3)
+    certify = numerics.certify
+
+    def everywhere_exact(values, bound, exact, bits=numerics.CERTIFIED_BITS):
+        return certify(values, np.full_like(values, np.inf), exact, bits)
+
+    monkeypatch.setattr(numerics, "certify", everywhere_exact)
+    np.testing.assert_array_equal(fast, gaussian_kde_logpdf(x, reference, 0.3))

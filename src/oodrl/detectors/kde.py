@@ -60,16 +60,36 @@ def gaussian_kde_logpdf(x: np.ndarray, reference: np.ndarray, bandwidth: float) 
     −‖x − r‖²/(2h²) = x·r/h² − ‖r‖²/(2h²) − ‖x‖²/(2h²); the last term is constant per row and
     leaves the log-sum-exp, so each block needs one matrix product and one exp.
 
-    Machine independence (SPEC §14): the exponents are computed in a fixed order
-    (`numerics.matmul`), but numpy's exp and log differ in the last bits between CPUs. Those
-    differences move a row's result by at most (2n + 64)·u·(its magnitude), so the result is
-    certified to 24 significant bits (`numerics.certify`); the rare rows where that bound
-    straddles a rounding boundary are summed in ``decimal``.
+    Machine independence (SPEC §14): the value defined is the log-sum-exp of the exponents
+    e_j = x·r_j/h² − ‖r_j‖²/(2h²) summed in index order (`numerics.matmul`, then the subtraction),
+    certified to 24 significant bits (`numerics.certify`); the rare rows whose error bound
+    straddles a rounding boundary are summed in ``decimal`` from those exponents. The fast path
+    differs from it in two machine-dependent ways, both inside the bound:
+
+    - numpy's exp and log differ in the last bits between CPUs (≤ 8 ulp each, with margin).
+      With p = max_j e_j and z_j = e_j − p (rounded: relative error u, so exp(z_j) gains
+      relative error u·|z_j|), the sum S = Σ_j exp(z_j) ≥ 1 (its peak term is exp(0)) has
+      relative error at most 16u + γ_n (n non-negative terms, any order) + u·Σ_j exp(z_j)|z_j|/S
+      ≤ (1 + 1/e)·n·u + 17u, since exp(z)|z| ≤ 1/e; log S then errs by about as much, absolute,
+      plus 16u·|log S|; the three additions forming the result add u·(magnitude) each, the
+      magnitude being |log S| + |p| + |row term| + |log normaliser|. (3n + 64)·u
+      + 24u·(magnitude) bounds all of it with room;
+    - the exponents come from BLAS (one product of [x, 1] and [r/h²; −‖r‖²/(2h²)], any order).
+      Each computed exponent, like the index-order one, is a sum of the d + 1 terms
+      x_i·r_ji/h² and −‖r_j‖²/(2h²) with rounded products, so within γ_{d+1}·(S_j + t_j) of the
+      exact sum (Higham §3.1, any order), S_j = Σ_i |x_i||r_ji|/h², t_j = ‖r_j‖²/(2h²); the two
+      differ by at most 2γ_{d+1}·max_j (S_j + t_j) ≤ 2γ_{d+1}·(Σ_i |x_i|·max_j |r_ji|/h²
+      + max_j t_j), a per-row bound; 3γ_{d+1} covers its own rounding. The log-sum-exp is
+      1-Lipschitz in the max-norm of its arguments, so the result moves by no more.
     """
     n, d = reference.shape
     inv_h2 = 1.0 / bandwidth**2
     scaled_reference_t = np.ascontiguousarray(reference.T) * inv_h2
     reference_term = 0.5 * inv_h2 * (reference * reference).sum(axis=1)
+    # [r/h²; −t]: (d + 1, n), so that [x, 1] @ it gives every exponent in one BLAS product.
+    augmented_reference = np.vstack([scaled_reference_t, -reference_term])
+    reference_scale = np.abs(scaled_reference_t).max(axis=1)  # max_j |r_ji|/h², (d,)
+    exponent_gamma = _gamma(d + 1)
     log_norm = float(
         numerics.log(np.float64(n)) + 0.5 * d * numerics.log(np.float64(2.0 * np.pi * bandwidth**2))
     )
@@ -78,13 +98,21 @@ def gaussian_kde_logpdf(x: np.ndarray, reference: np.ndarray, bandwidth: float) 
     for start in range(0, x.shape[0], _ROWS_PER_BLOCK):
         block = x[start : start + _ROWS_PER_BLOCK]
         rows = slice(start, start + len(block))
-        exponents = _exponents(block, scaled_reference_t, reference_term)
+        augmented = np.empty((len(block), d + 1))
+        augmented[:, :d] = block
+        augmented[:, d] = 1.0
+        exponents = augmented @ augmented_reference
         peak = exponents.max(axis=1)
-        log_sum = np.log(np.exp(exponents - peak[:, None]).sum(axis=1))
+        np.subtract(exponents, peak[:, None], out=exponents)
+        np.exp(exponents, out=exponents)
+        log_sum = np.log(exponents.sum(axis=1))
         row_term = 0.5 * inv_h2 * (block * block).sum(axis=1)
         out[rows] = log_sum + peak - row_term - log_norm
-        magnitude = np.abs(log_sum) + np.abs(peak) + np.abs(row_term) + abs(log_norm) + 1.0
-        bound[rows] = (2 * n + 64) * _UNIT_ROUNDOFF * magnitude
+        magnitude = np.abs(log_sum) + np.abs(peak) + np.abs(row_term) + abs(log_norm)
+        exponent_error = np.abs(block) @ reference_scale + reference_term.max()
+        bound[rows] = (
+            3 * n + 64 + 24 * magnitude
+        ) * _UNIT_ROUNDOFF + 3 * exponent_gamma * exponent_error
 
     def exact(index: tuple[int, ...]) -> float:
         (row,) = index
@@ -98,10 +126,16 @@ def gaussian_kde_logpdf(x: np.ndarray, reference: np.ndarray, bandwidth: float) 
     return numerics.certify(out, bound, exact, bits=_KDE_BITS)
 
 
+def _gamma(n: int) -> float:
+    """γ_n = n·u / (1 − n·u), Higham's bound on the relative error of an n-term dot product."""
+    return n * _UNIT_ROUNDOFF / (1.0 - n * _UNIT_ROUNDOFF)
+
+
 def _exponents(
     block: np.ndarray, scaled_reference_t: np.ndarray, reference_term: np.ndarray
 ) -> np.ndarray:
-    """x·r/h² − ‖r‖²/(2h²) for every row of ``block`` and every reference point."""
+    """x·r/h² − ‖r‖²/(2h²) for every row of ``block`` and every reference point, in index order
+    (the machine-independent definition the certified result is the rounding of)."""
     return numerics.matmul(block, scaled_reference_t) - reference_term
 
 
