@@ -1,13 +1,20 @@
-"""Where the default benchmark's time goes, in one run.
+"""The suite's pipelines against their simulation floor, in one run (SPEC §12).
 
-    python benchmarks/pipeline_speed.py [--params params.yaml] [--workers 0]
+    python benchmarks/pipeline_speed.py [--pipelines . pipeline/cartpole …] [--no-knobs]
+                                        [--cache-dir DIR] [--json OUT]
 
-1. The simulation floor: roll out every episode the protocol simulates (ID, clean evaluation,
-   online headline and online sweep sets) with the batched collector and nothing else.
-2. A full `dvc repro` in a fresh copy of the repository, with each stage's wall time.
-3. A no-op `dvc repro` right after it.
-4. The one-knob re-run: change one injector's parameter and `dvc repro` again.
-Prints every figure and the ratios full/floor and one-knob/full.
+In a fresh copy of the repository (committed policies, no outputs):
+1. Per pipeline, its simulation floor: roll out every episode it simulates (ID, clean
+   evaluation, each online injector's headline and sweep sets) with the collector and nothing
+   else — no stores written, no detectors.
+2. Per pipeline, a full `dvc repro <pipeline>/dvc.yaml`; then the suite's leaderboard (only
+   when every pipeline is built).
+3. A no-op `dvc repro` of the whole suite (or of the pipelines built).
+4. On the root pipeline (LunarLander, the paper default): one injector's knob, one detector's
+   knob, and `dvc exp run -S anomaly.severity=0.6`, each timed with the stages it ran.
+Prints every figure and the ratios: full / floor per pipeline, suite / suite floor, each knob /
+the root's full run. `--cache-dir` shares a DVC cache (e.g. the checkout's own, so that its
+`dvc repro` afterwards restores these results from the run cache instead of recomputing them).
 """
 
 from __future__ import annotations
@@ -16,89 +23,124 @@ import argparse
 import json
 import tempfile
 import time
-from collections import defaultdict
 from pathlib import Path
 
 import yaml
 
-from oodrl.testing.pipeline import copy_project, repro
+from oodrl.testing.pipeline import copy_project, repro, run
 
 ROOT = Path(__file__).resolve().parents[1]
+SUITE = "pipeline/suite/dvc.yaml"
 
 
-def simulation_floor(params_path: Path) -> tuple[float, int]:
-    """Seconds to roll out the protocol's simulated episodes, and the number of steps."""
-    import torch
-
-    torch.set_num_threads(1)
+def simulation_floor(pipeline: Path) -> tuple[float, int]:
+    """Seconds to simulate a pipeline's episodes (as its collect stages do), and the steps."""
+    from oodrl import protocol
     from oodrl.config import load_params
-    from oodrl.envs import ENVIRONMENTS
-    from oodrl.envs.collect import collect
-    from oodrl.policies.load import load_policy
-    from oodrl.protocol import eval_seeds, id_seeds
+    from oodrl.store import write_trajectories
 
-    params = load_params(params_path)
-    adapter = ENVIRONMENTS.get(params.env.id)()
-    policy = load_policy(ROOT / "models" / "policy.pt", mode=params.policy.mode)
+    params = load_params(pipeline / "params.yaml")
+    policy = pipeline / "models" / "policy.pt"
     online = [n for n in params.benchmark.injectors if params.injector_classes[n].mode == "online"]
-    n_sets = 1 + len(online) * (1 + len(params.anomaly.sweep))
-    streams = [id_seeds(params)] + [eval_seeds(params)] * n_sets
-    workers = params.executor.resolved_workers
     start = time.perf_counter()
-    for seeds in streams:
-        collect(adapter, policy, seeds, params.env.T, workers=workers)
-    steps = sum(len(s) for s in streams) * params.env.T
-    return time.perf_counter() - start, steps
+    sets = [protocol.id_set(params, policy), protocol.eval_set(params, policy)]
+    elapsed = time.perf_counter() - start
+    with tempfile.TemporaryDirectory() as tmp:
+        eval_path = Path(tmp) / "eval.zarr"
+        write_trajectories(eval_path, sets[1])  # post-hoc injectors read it; not timed
+        grid = [params.injector_severity(n) for n in online]
+        start = time.perf_counter()
+        for name, headline in zip(online, grid, strict=True):
+            severities = [headline, *params.anomaly.sweep]
+            sets += protocol.perturbed_sets(params, name, severities, policy, eval_path)
+        elapsed += time.perf_counter() - start
+    return elapsed, sum(s.states.shape[0] * s.states.shape[1] for s in sets)
 
 
-def stage_timings(repo: Path) -> dict[str, float]:
-    timings = {}
-    for path in sorted((repo / ".oodrl" / "timings").glob("*.json")):
-        record = json.loads(path.read_text())
-        timings[record["stage"]] = record["wall_s"]
-    return timings
-
-
-def timed_repro(repo: Path) -> tuple[float, list[str]]:
+def timed_repro(repo: Path, *args: str) -> tuple[float, list[str]]:
     start = time.perf_counter()
-    ran = repro(repo)
+    ran = repro(repo, *args)
     return time.perf_counter() - start, ran
 
 
+def edit_params(repo: Path, edit) -> None:
+    params = yaml.safe_load((repo / "params.yaml").read_text())
+    edit(params)
+    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+
+
+def knob_runs(repo: Path) -> dict[str, tuple[float, int]]:
+    """Seconds and stages run for each of the design's variants, on the root pipeline."""
+    figures = {}
+
+    def injector(p):
+        p["anomaly"]["injectors"]["observation_delay"]["max_delay"] = 5
+
+    def detector(p):
+        p["detectors"]["kde_density"]["threshold_percentile"] = 98.0
+
+    for name, edit in [("injector knob", injector), ("detector knob", detector)]:
+        edit_params(repo, edit)
+        seconds, ran = timed_repro(repo)
+        figures[name] = (seconds, len(ran))
+    run(repo, "git", "add", "-A")
+    run(repo, "git", "commit", "-q", "-m", "knobs")
+    start = time.perf_counter()
+    done = run(repo, "dvc", "exp", "run", "-S", "anomaly.severity=0.6")
+    ran = [line for line in done.stdout.splitlines() if line.startswith("Running stage '")]
+    figures["dvc exp run -S anomaly.severity=0.6"] = (time.perf_counter() - start, len(ran))
+    return figures
+
+
 def main() -> None:
+    from oodrl.pipeline import pipeline_dirs
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--params", type=Path, default=ROOT / "params.yaml")
+    every = [d.relative_to(ROOT).as_posix() or "." for d in pipeline_dirs(ROOT)]
+    parser.add_argument("--pipelines", nargs="+", default=every, help="default: the suite")
+    parser.add_argument("--no-knobs", action="store_true", help="skip the knob re-runs")
+    parser.add_argument("--cache-dir", type=Path, help="the DVC cache the copy uses")
+    parser.add_argument("--json", type=Path, help="also write the figures here")
     args = parser.parse_args()
-    params = yaml.safe_load(args.params.read_text())
 
-    floor, steps = simulation_floor(args.params)
-    print(f"simulation floor: {steps} steps in {floor:.1f} s ({steps / floor:.0f} steps/s)")
-
-    with tempfile.TemporaryDirectory(prefix="oodrl-speed-") as scratch:
-        repo = copy_project(ROOT, Path(scratch) / "repo", params)
-        full, ran = timed_repro(repo)
-        timings = stage_timings(repo)
-        groups: dict[str, list[float]] = defaultdict(list)
-        for stage, seconds in timings.items():
-            groups[stage.split("@")[0]].append(seconds)
-        print(f"full dvc repro: {full:.1f} s, {len(ran)} stages "
-              f"(stage bodies {sum(timings.values()):.1f} s; the rest is process start-up "
-              "and DVC)")  # fmt: skip
-        for group, values in sorted(groups.items(), key=lambda kv: -sum(kv[1])):
-            print(f"  {group:14s} {len(values):3d} stages  {sum(values):7.1f} s  "
-                  f"(max {max(values):.2f} s)")  # fmt: skip
-        noop, _ = timed_repro(repo)
-        print(f"no-op dvc repro: {noop:.1f} s")
-        injector = "observation_delay"
-        edited = yaml.safe_load((repo / "params.yaml").read_text())
-        edited["anomaly"]["injectors"][injector]["max_delay"] += 1
-        (repo / "params.yaml").write_text(yaml.safe_dump(edited, sort_keys=False))
-        knob, ran = timed_repro(repo)
-        print(
-            f"one-knob re-run (anomaly.injectors.{injector}.max_delay): {knob:.1f} s, "
-            f"{len(ran)} stages"
-        )
-    print(f"ratio full / floor: {full / floor:.1f}x; one-knob / full: {knob / full:.0%}")
+    with tempfile.TemporaryDirectory() as tmp:
+        repo = copy_project(ROOT, Path(tmp) / "repo")
+        if args.cache_dir:
+            run(repo, "dvc", "cache", "dir", str(args.cache_dir.resolve()))
+        rows, floor_total, full_total = [], 0.0, 0.0
+        for name in args.pipelines:
+            floor, steps = simulation_floor(repo / name)
+            target = f"{name}/dvc.yaml" if name != "." else "dvc.yaml"
+            full, ran = timed_repro(repo, target)
+            rows.append({"pipeline": name, "floor_s": floor, "steps": steps, "full_s": full,
+                         "stages": len(ran)})  # fmt: skip
+            floor_total += floor
+            full_total += full
+            print(f"{name}: {steps} steps, floor {floor:.1f} s; full {full:.1f} s "
+                  f"({len(ran)} stages) = {full / floor:.1f}× the floor", flush=True)  # fmt: skip
+        suite_target = SUITE if args.pipelines == every else None
+        if suite_target:
+            seconds, ran = timed_repro(repo, suite_target)
+            full_total += seconds
+            print(f"leaderboard: {seconds:.1f} s ({len(ran)} stages)")
+        noop_targets = [suite_target] if suite_target else [
+            f"{n}/dvc.yaml" if n != "." else "dvc.yaml" for n in args.pipelines
+        ]  # fmt: skip
+        noop, ran = timed_repro(repo, *noop_targets)
+        assert ran == [], f"the no-op repro ran {ran}"
+        print(f"suite: floor {floor_total:.1f} s; full {full_total:.1f} s = "
+              f"{full_total / floor_total:.1f}× the floor; no-op repro {noop:.2f} s")  # fmt: skip
+        figures = {"pipelines": rows, "suite_floor_s": floor_total, "suite_full_s": full_total,
+                   "noop_s": noop}  # fmt: skip
+        root_full = next((r["full_s"] for r in rows if r["pipeline"] == "."), None)
+        if not args.no_knobs and root_full:
+            knobs = knob_runs(repo)
+            for name, (seconds, stages) in knobs.items():
+                print(f"{name}: {seconds:.1f} s ({stages} stages) = "
+                      f"{seconds / root_full:.0%} of the root's full run")  # fmt: skip
+            figures["knobs"] = {k: {"s": s, "stages": n} for k, (s, n) in knobs.items()}
+        if args.json:
+            args.json.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
 
 
 if __name__ == "__main__":

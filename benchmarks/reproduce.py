@@ -38,7 +38,9 @@ def main() -> int:
             ran = repro(repo, env=selection)
             seconds = time.perf_counter() - start
             print(f"{name} kernels: dvc repro ran {len(ran)} stages in {seconds:.1f} s", flush=True)
-            status = run(repo, "dvc", "status", "-q", "dvc.yaml", check=False, env=selection)
+            status = run(
+                repo, "dvc", "status", "-q", "--with-deps", "dvc.yaml", check=False, env=selection
+            )
             if status.returncode != 0:
                 print(f"FAIL: {name}: `dvc status -q` exit {status.returncode}")
                 return 1

@@ -92,14 +92,16 @@ def test_train_policy_keeps_a_policy_trained_with_these_settings(tmp_path, repo_
 def test_pipeline_check_refuses_a_stale_dvc_yaml_in_one_line(tmp_path, repo_root, monkeypatch):
     (tmp_path / "src").symlink_to(repo_root / "src")
     (tmp_path / "params.yaml").write_text((repo_root / "params.yaml").read_text())
-    pipeline = yaml.safe_load((repo_root / "dvc.yaml").read_text())
-    pipeline["stages"]["fit"]["do"]["deps"].remove("data/code/fit-${item}.txt")
-    (tmp_path / "dvc.yaml").write_text(yaml.safe_dump(pipeline))
     monkeypatch.chdir(tmp_path)
+    assert runner.invoke(app, ["pipeline", "write"]).exit_code == 0
+    kde = tmp_path / "detectors/kde_density/dvc.yaml"
+    pipeline = yaml.safe_load(kde.read_text())
+    pipeline["stages"]["fit"]["deps"].remove("data/code/fit-kde_density.txt")
+    kde.write_text(yaml.safe_dump(pipeline))
     result = runner.invoke(app, ["pipeline", "check"])
     assert result.exit_code == 2
     assert result.output.count("\n") == 1
-    assert "dvc.yaml is not what the template" in result.output
+    assert "detectors/kde_density/dvc.yaml is not what the template" in result.output
     assert "`oodrl pipeline write`" in result.output
     assert runner.invoke(app, ["pipeline", "write"]).exit_code == 0
     assert runner.invoke(app, ["pipeline", "check"]).exit_code == 0

@@ -16,7 +16,8 @@ import pytest
 
 from oodrl import yamlio
 from oodrl.config import merge_params, parse_params, read_params_data
-from oodrl.stages import collect, fit, metrics, score
+from oodrl.metrics.results import compute_results
+from oodrl.stages import collect, fit, score
 from oodrl.suite import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -84,11 +85,11 @@ def test_the_protocol_runs_on_every_environment(env_id, tmp_path: Path):
             score.score_injector(
                 detector, injector, model, *stores, scores / detector / f"{injector}.zarr"
             )
-    results, sweep = metrics.compute_results(params, scores)
-    records = [r for r in results["records"] if r["kind"] == "anomaly"]
+    results = compute_results(params, scores)
+    records = [r for r in results.records if r.kind == "anomaly"]
     assert len(records) == 8 * 9
-    assert len(sweep["sweep"]) == 9
-    values = [r["metrics"]["matched_auroc"]["mean"] for r in records]
+    assert len(results.sweep) == 9
+    values = [r.metrics["matched_auroc"]["mean"] for r in records]
     assert all(0.0 <= v <= 1.0 for v in values)
     # Something is detected somewhere: no environment is degenerate for the whole protocol.
     assert max(values) > 0.6, yamlio.dump(sorted(values))

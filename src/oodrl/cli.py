@@ -283,11 +283,12 @@ def fit(
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
     """Stage fit: fit and calibrate one detector."""
+    from oodrl.layout import detector_stage
     from oodrl.stages.fit import fit_detector
 
     config = _load(params)
     _known(detector, config.benchmark.detectors, "benchmark.detectors")
-    with _stage(f"fit@{detector}"):
+    with _stage(detector_stage(detector, "fit")):
         fit_detector(config, detector, id, out)
 
 
@@ -302,24 +303,31 @@ def score(
     sweep: Annotated[Path | None, PathOption()] = None,
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Stages score_clean / score: one detector on the clean set or on one injector's sets."""
+    """Stages score_clean, score and score_sweep: one detector on the clean evaluation set
+    (--eval), or on one injector's headline set (--injector, --ood) or its sweep (--sweep)."""
+    from oodrl.layout import detector_stage
     from oodrl.stages import score as stages
 
     config = _load(params)
     _known(detector, config.benchmark.detectors, "benchmark.detectors")
-    if injector is None:
-        if eval is None:
-            raise ConfigError(
-                "score needs --eval (clean set) or --injector with --ood and --sweep."
-            )
-        with _stage(f"score_clean@{detector}"):
+    inputs = {"--eval": eval, "--ood": ood, "--sweep": sweep}
+    given = [option for option, path in inputs.items() if path is not None]
+    if len(given) != 1 or (injector is None) != (given == ["--eval"]):
+        raise ConfigError(
+            f"score needs exactly one of --eval (clean set), --injector with --ood (headline "
+            f"set), or --injector with --sweep (sweep sets); got {', '.join(given) or 'none'}."
+        )
+    if eval is not None:
+        with _stage(detector_stage(detector, "score_clean")):
             stages.score_clean(detector, model, eval, out)
         return
     _known(injector, config.benchmark.injectors, "benchmark.injectors")
-    if ood is None or sweep is None:
-        raise ConfigError("score --injector needs both --ood and --sweep.")
-    with _stage(f"score@{detector}-{injector}"):
-        stages.score_injector(detector, injector, model, ood, sweep, out)
+    if ood is not None:
+        with _stage(detector_stage(detector, "score", injector)):
+            stages.score_headline(detector, injector, model, ood, out)
+    else:
+        with _stage(detector_stage(detector, "score_sweep", injector)):
+            stages.score_sweep(detector, injector, model, sweep, out)
 
 
 @command("metrics")

@@ -60,6 +60,10 @@ class AnomalyConfig(_Section):
 
 
 class MetricsConfig(_Section):
+    """The `metrics` block: the episode bootstrap (`n_boot` resamples, `ci` level; seeded by
+    the run's `seed`), the TPR of the FPR operating point, the temporal-AUROC buffer, and how
+    many episodes each score-traces panel draws. Metrics read it as their settings."""
+
     n_boot: int = Field(1000, ge=1)
     ci: float = Field(0.95, gt=0, lt=1)
     tpr_target: float = Field(0.95, gt=0, le=1)

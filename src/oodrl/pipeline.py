@@ -40,6 +40,10 @@ CLI_MODULE = "oodrl.cli"
 CODE_DIR = "src"  # the package sources' directory in the project
 TEMPLATE = Path(__file__).with_name("pipeline.yaml")
 ENVIRONMENTS_DIR = "pipeline"  # pipeline/<env>/{dvc.yaml, params.yaml}
+#: The template of each detector's DVC file, layout.detector_pipeline(<detector>).
+DETECTOR_TEMPLATE = Path(__file__).with_name("detector_pipeline.yaml")
+#: A detector file's stages run in the pipeline's directory: detectors/<detector>/ -> ../..
+WDIR = "../.."
 PARAMS_FILE = "params.yaml"
 CHECK_VERB = "check-params"
 CHECKED = "data/params.checked"
@@ -376,12 +380,17 @@ def write_stamps(pipeline_path: Path, params_path: Path, code_dir: Path) -> list
     CODE_STAMPS, as the command runs in its directory); remove stale ones."""
     from oodrl.config import read_params_data
     from oodrl.fileio import atomic_write_text
+    from oodrl.layout import detector_pipeline
 
     project = Project.of_pipeline(pipeline_path)
     params = read_params_data(params_path)
+    files = [pipeline_path] + [
+        project.pipeline_dir / detector_pipeline(d) for d in params["benchmark"]["detectors"]
+    ]
     kinds = {
         kind
-        for cmd in stage_commands(_load_pipeline(pipeline_path)["stages"], params)
+        for path in files
+        for cmd in stage_commands(_load_pipeline(path)["stages"], params)
         if (kind := stage_kind(cmd)) is not None and kind[0] != CHECK_VERB
     }
     written = []
@@ -441,20 +450,46 @@ def rendered(pipeline_dir: Path, root: Path) -> str:
     stages = document["stages"]
     for _, body in _stage_bodies(stages):
         kind = stage_kind(body["cmd"])
-        if kind is None:
-            continue
-        if kind[0] == CHECK_VERB:
+        if kind is not None and kind[0] == CHECK_VERB:
             code = [project.package_dir, *sorted(plugin_files(project, params))]
             body["deps"].clear()
             body["deps"].extend(project.relative(p) for p in (*_params_chain(params_path), *code))
-        else:
-            deps = body["deps"]
-            deps.insert(deps.index(CHECKED) + 1, stamp_path(*kind))
+    _add_stamps(stages)
     if project.pipeline_dir != project.root:
         _read_merged_params(stages, params)
         # DVC finds the Vega-Lite template files from the root only: environments show their
         # PNG figures (the root's page draws the paper default's interactive views).
         document["plots"] = ["reports/figures"]
+    return _dumped(document)
+
+
+def rendered_detector(pipeline_dir: Path, root: Path, detector: str) -> str:
+    """detectors/<detector>/dvc.yaml of the pipeline in `pipeline_dir`."""
+    from oodrl.config import read_params_data
+
+    params = read_params_data(pipeline_dir / PARAMS_FILE)
+    document = _yaml().load(DETECTOR_TEMPLATE.read_text())
+    stages = document["stages"]
+    _add_stamps(stages)
+    if pipeline_dir.resolve() != root.resolve():
+        _read_merged_params(stages, params)
+    for name, body in _stage_bodies(stages):
+        if "foreach" in stages[name]:
+            stages[name]["foreach"] = _flow(_values(stages[name]["foreach"], params))
+        body.insert(0, "wdir", WDIR)
+    return _dumped(document).replace("${detector}", detector)
+
+
+def _add_stamps(stages: dict[str, Any]) -> None:
+    """Each oodrl stage depends on its kind's code stamp, right after CHECKED."""
+    for _, body in _stage_bodies(stages):
+        kind = stage_kind(body["cmd"])
+        if kind is not None and kind[0] != CHECK_VERB:
+            deps = body["deps"]
+            deps.insert(deps.index(CHECKED) + 1, stamp_path(*kind))
+
+
+def _dumped(document) -> str:
     buffer = io.StringIO()
     _yaml().dump(document, buffer)
     return buffer.getvalue()
@@ -529,35 +564,72 @@ def rendered_suite(root: Path) -> str:
     return header + buffer.getvalue()
 
 
+def pipeline_files(pipeline_dir: Path, root: Path) -> dict[Path, str]:
+    """A pipeline's generated DVC files and their text: its dvc.yaml, then one per detector."""
+    from oodrl.config import read_params_data
+    from oodrl.layout import detector_pipeline
+
+    detectors = read_params_data(pipeline_dir / PARAMS_FILE)["benchmark"]["detectors"]
+    files = {pipeline_dir / "dvc.yaml": rendered(pipeline_dir, root)}
+    for detector in detectors:
+        text = rendered_detector(pipeline_dir, root, detector)
+        files[pipeline_dir / detector_pipeline(detector)] = text
+    return files
+
+
+def _stale_files(pipeline_dir: Path, files: dict[Path, str]) -> list[Path]:
+    """Generated detector files of detectors no longer in the benchmark."""
+    from oodrl.layout import DETECTOR_PIPELINES
+
+    found = sorted((pipeline_dir / DETECTOR_PIPELINES).glob("*/dvc.yaml"))
+    return [path for path in found if path not in files]
+
+
 def _generated(root: Path) -> Iterator[tuple[Path, str]]:
-    """Every generated dvc.yaml and the text it must have."""
+    """Every generated DVC file and the text it must have."""
     for directory in pipeline_dirs(root):
-        yield directory / "dvc.yaml", rendered(directory, root)
+        yield from pipeline_files(directory, root).items()
     yield root / SUITE_DIR / "dvc.yaml", rendered_suite(root)
 
 
 def write(root: Path) -> list[Path]:
-    """Write every pipeline's dvc.yaml from the template; the files that changed."""
+    """Write every pipeline's DVC files from the template; the files that changed or went.
+
+    A detector dropped from the benchmark loses its DVC file and lock (git keeps both)."""
     changed = []
     for path, text in _generated(root):
         if not path.is_file() or path.read_text() != text:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text)
             changed.append(path)
+    for directory in pipeline_dirs(root):
+        for stale in _stale_files(directory, pipeline_files(directory, root)):
+            for path in (stale, stale.with_suffix(".lock")):
+                path.unlink(missing_ok=True)
+            changed.append(stale)
     return changed
 
 
 def check_pipeline(pipeline_path: Path) -> None:
-    """Raise a one-line ConfigError unless dvc.yaml is what `oodrl pipeline write` writes."""
+    """Raise a one-line ConfigError unless a pipeline's DVC files (its dvc.yaml and its
+    detectors' files) are what `oodrl pipeline write` writes."""
     project = Project.of_pipeline(pipeline_path)
-    text = pipeline_path.read_text() if pipeline_path.is_file() else ""
-    expected = rendered(project.pipeline_dir, project.root)
-    if expected != text:
-        where = os.path.relpath(pipeline_path.resolve(), project.root)
+    files = pipeline_files(project.pipeline_dir, project.root)
+    for path, expected in files.items():
+        text = path.read_text() if path.is_file() else ""
+        if expected != text:
+            where = os.path.relpath(path.resolve(), project.root)
+            raise ConfigError(
+                f"{where} is not what the template {TEMPLATE.name} and its params give "
+                f"({_first_difference(expected, text)}); run `oodrl pipeline write` "
+                f"(never edit a generated DVC file by hand)."
+            )
+    stale = _stale_files(project.pipeline_dir, files)
+    if stale:
+        where = os.path.relpath(stale[0].resolve(), project.root)
         raise ConfigError(
-            f"{where} is not what the template {TEMPLATE.name} and its params give "
-            f"({_first_difference(expected, text)}); run `oodrl pipeline write` "
-            f"(never edit a generated dvc.yaml by hand)."
+            f"{where} belongs to a detector no longer in benchmark.detectors; run `oodrl "
+            f"pipeline write`."
         )
 
 

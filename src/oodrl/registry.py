@@ -45,10 +45,6 @@ def add_project_dir_to_path() -> bool:
     return True
 
 
-#: The old private name, until stages/score.py imports `add_project_dir_to_path`.
-_project_dir_on_path = add_project_dir_to_path
-
-
 def import_module(module_name: str) -> Any:
     """Import a module; one that is not installed is looked up in the project directory."""
     try:

@@ -100,7 +100,18 @@ def rerun_hint(stage: str | None) -> str:
     """
     if not stage:
         return "re-run the stage that writes it"
-    return f"re-run only that stage with `dvc repro -s -f {stage}`"
+    return f"re-run only that stage with `dvc repro -s -f {stage_address(stage)}`"
+
+
+def stage_address(stage: str) -> str:
+    """`stage` ('collect_eval', or 'detectors/<d>/dvc.yaml:fit') as DVC names it from the
+    repository root: a stage command runs in its pipeline's directory, maybe pipeline/<env>."""
+    here = Path.cwd()
+    root = next((d for d in (here, *here.parents) if (d / ".dvc").is_dir()), here)
+    if root == here:
+        return stage
+    file, _, name = stage.rpartition(":")
+    return f"{here.relative_to(root).as_posix()}/{file or 'dvc.yaml'}:{name}"
 
 
 def _open_group(path: Path, expected_format: str, stage: str | None):

@@ -5,20 +5,20 @@ import pytest
 import yaml
 from sklearn.metrics import roc_auc_score
 
+from oodrl.config import MetricsConfig, parse_params
 from oodrl.errors import ConfigError, ContractError, DetectorError
 from oodrl.metrics import METRICS, higher_is_better
 from oodrl.metrics.aggregate import (
     NULL_METRICS,
     PAIRED_METRICS,
     Metric,
-    MetricSettings,
     episode_metrics,
     null_episode_metrics,
     summarise,
 )
 
 N, T, ONSET = 6, 60, 20
-SETTINGS = MetricSettings(n_boot=200)
+SETTINGS = MetricsConfig(n_boot=200)
 
 SPEC_METRICS = {
     "raw_auroc", "raw_auprc", "null_auroc", "null_auprc", "lift_over_null", "adjusted_auroc",
@@ -156,19 +156,19 @@ def test_contract_errors():
         episode_metrics(perturbed, clean, labels, float("nan"), ONSET, None, SETTINGS)
 
 
-def test_settings_are_validated():
-    with pytest.raises(ConfigError, match="'n_boot' parameter of MetricSettings"):
-        MetricSettings(n_boot=0)
-    with pytest.raises(ConfigError, match="tpr_target"):
-        MetricSettings(tpr_target=1.5)
-    with pytest.raises(ConfigError, match="temporal_buffer"):
-        MetricSettings(temporal_buffer=-1)
+@pytest.mark.parametrize(
+    ("key", "value"), [("n_boot", 0), ("ci", 1.0), ("tpr_target", 1.5), ("temporal_buffer", -1)]
+)
+def test_settings_are_validated_with_params(default_params, key, value):
+    default_params["metrics"][key] = value
+    with pytest.raises(ConfigError, match=f"metrics.{key}"):
+        parse_params(default_params, components=False)
 
 
 def test_settings_reach_the_metrics():
     perturbed, clean, labels = episodes(1.0)
-    loose = MetricSettings(n_boot=10, tpr_target=0.5, temporal_buffer=0)
-    strict = MetricSettings(n_boot=10, tpr_target=1.0, temporal_buffer=0)
+    loose = MetricsConfig(n_boot=10, tpr_target=0.5, temporal_buffer=0)
+    strict = MetricsConfig(n_boot=10, tpr_target=1.0, temporal_buffer=0)
     a = episode_metrics(perturbed, clean, labels, 1.0, ONSET, None, loose)
     b = episode_metrics(perturbed, clean, labels, 1.0, ONSET, None, strict)
     assert (a["matched_fpr95"] <= b["matched_fpr95"]).all()
@@ -177,8 +177,8 @@ def test_settings_reach_the_metrics():
 
 def test_summarise_is_yaml_safe_reproducible_and_rounded():
     result = episode_metrics(*episodes(1.0), 1.5, ONSET, None, SETTINGS)
-    summary = summarise(result, SETTINGS)
-    assert summary == summarise(result, SETTINGS)
+    summary = summarise(result, SETTINGS, seed=0)
+    assert summary == summarise(result, SETTINGS, seed=0)
     assert list(summary) == sorted(result)
     for stats in summary.values():
         assert list(stats) == ["mean", "std", "ci_low", "ci_high", "n_episodes"]
@@ -187,17 +187,21 @@ def test_summarise_is_yaml_safe_reproducible_and_rounded():
         assert all(round(stats[k], 6) == stats[k] for k in ("mean", "std", "ci_low", "ci_high"))
         assert stats["ci_low"] <= stats["mean"] <= stats["ci_high"]
     assert yaml.safe_load(yaml.safe_dump(summary)) == summary
+    # The run's seed draws the resamples: another seed moves the interval, not the mean.
+    other = summarise(result, SETTINGS, seed=1)["matched_auroc"]
+    assert other["mean"] == summary["matched_auroc"]["mean"]
+    assert other != summary["matched_auroc"]
 
 
 def test_summarise_paired_matches_the_per_episode_pairs():
     result = episode_metrics(*episodes(1.0), 1.5, ONSET, None, SETTINGS)
     paired = {name: (result["raw_auroc"], result["null_auroc"]) for name in PAIRED_METRICS}
-    summary = summarise({"matched_auroc": result["matched_auroc"]}, SETTINGS, paired)
+    summary = summarise({"matched_auroc": result["matched_auroc"]}, SETTINGS, paired, seed=0)
     assert set(summary) == {"matched_auroc", *PAIRED_METRICS}
-    direct = summarise(result, SETTINGS)
+    direct = summarise(result, SETTINGS, seed=0)
     for name in PAIRED_METRICS:
         assert summary[name] == direct[name]
     with pytest.raises(ContractError, match="No paired definition"):
-        summarise({}, SETTINGS, {"f1": (result["f1"], result["f1"])})
+        summarise({}, SETTINGS, {"f1": (result["f1"], result["f1"])}, seed=0)
     with pytest.raises(ContractError, match="'f1'"):
-        summarise({"f1": np.array([np.nan, 1.0])}, SETTINGS)
+        summarise({"f1": np.array([np.nan, 1.0])}, SETTINGS, seed=0)

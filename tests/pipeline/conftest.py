@@ -11,11 +11,31 @@ from pathlib import Path
 import pytest
 import yaml
 
+from oodrl.layout import detector_stage
 from oodrl.testing.pipeline import copy_project, repro
 
 DETECTORS = ["mahalanobis_distance", "kde_density"]
 INJECTORS = ["observation_delay", "stuck_actuator"]
 POLICY_FILES = ("models/policy.pt", "models/policy.json")
+
+
+def detector_stages(detector: str) -> list[str]:
+    """Every stage of one detector's DVC file, as `dvc repro` names them."""
+    return [
+        detector_stage(detector, "fit"),
+        detector_stage(detector, "score_clean"),
+        *injector_scoring([detector], *INJECTORS),
+    ]
+
+
+def injector_scoring(detectors: list[str], *injectors: str) -> list[str]:
+    """The headline and sweep scoring stages of `detectors` on `injectors`."""
+    return [
+        detector_stage(d, stage, i)
+        for d in detectors
+        for i in injectors
+        for stage in ("score", "score_sweep")
+    ]
 
 
 def tiny_params(default: dict) -> dict:

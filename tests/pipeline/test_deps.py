@@ -16,6 +16,7 @@ from typer.testing import CliRunner
 import oodrl
 from oodrl.cli import app
 from oodrl.errors import ConfigError
+from oodrl.layout import detector_pipeline
 from oodrl.pipeline import (
     MERGED_PARAMS,
     Project,
@@ -52,7 +53,12 @@ def test_committed_pipelines_are_what_pipeline_write_writes(repo_root, monkeypat
 def test_a_hand_edited_pipeline_is_refused(tmp_path, repo_root):
     (tmp_path / "src").symlink_to(repo_root / "src")
     shutil.copy(repo_root / "params.yaml", tmp_path / "params.yaml")
-    assert write(tmp_path) == [tmp_path / "dvc.yaml", tmp_path / "pipeline/suite/dvc.yaml"]
+    detectors = yaml.safe_load((repo_root / "params.yaml").read_text())["benchmark"]["detectors"]
+    assert write(tmp_path) == [
+        tmp_path / "dvc.yaml",
+        *(tmp_path / detector_pipeline(d) for d in detectors),
+        tmp_path / "pipeline/suite/dvc.yaml",
+    ]
     check(tmp_path)
     with (tmp_path / "dvc.yaml").open("a") as pipeline:
         pipeline.write("# an edit\n")
@@ -64,12 +70,15 @@ def test_a_hand_edited_pipeline_is_refused(tmp_path, repo_root):
 def test_every_stage_depends_on_its_code_stamp_and_check_params_on_the_sources(repo_root):
     stages = yaml.safe_load((repo_root / "dvc.yaml").read_text())["stages"]
     assert stages["check_params"]["deps"] == ["params.yaml", "src/oodrl"]
-    assert "data/code/fit-${item}.txt" in stages["fit"]["do"]["deps"]
-    assert "data/code/score-${item.detector}.txt" in stages["score"]["deps"]
-    assert "data/code/score-${item}.txt" in stages["score_clean"]["do"]["deps"]
     assert "data/code/collect-ood-${item}.txt" in stages["collect_sweep"]["do"]["deps"]
     assert "data/code/metrics.txt" in stages["metrics"]["deps"]
-    deps = [d for s in stages.values() for d in s.get("deps", s.get("do", {}).get("deps", []))]
+    kde = yaml.safe_load((repo_root / detector_pipeline("kde_density")).read_text())["stages"]
+    assert "data/code/fit-kde_density.txt" in kde["fit"]["deps"]
+    assert "data/code/score-kde_density.txt" in kde["score_clean"]["deps"]
+    assert "data/code/score-kde_density.txt" in kde["score"]["do"]["deps"]
+    assert "data/code/score-kde_density.txt" in kde["score_sweep"]["do"]["deps"]
+    every = [*stages.values(), *kde.values()]
+    deps = [d for s in every for d in s.get("deps", s.get("do", {}).get("deps", []))]
     assert not [d for d in deps if d.startswith("src/") and d != "src/oodrl"]
 
 
@@ -91,15 +100,23 @@ def env_project(tmp_path, repo_root) -> Path:
 def test_environment_pipeline_paths_are_relative_to_its_directory(env_project):
     env = env_project / "pipeline" / "cartpole"
     suite = env_project / "pipeline/suite/dvc.yaml"
-    assert write(env_project) == [env_project / "dvc.yaml", env / "dvc.yaml", suite]
+    shared = yaml.safe_load((env_project / "params.yaml").read_text())
+    detectors = shared["benchmark"]["detectors"]
+    assert write(env_project) == [
+        *(project / name for project in (env_project, env)
+          for name in ["dvc.yaml", *(detector_pipeline(d) for d in detectors)]),
+        suite,
+    ]  # fmt: skip
     stages = yaml.safe_load((env / "dvc.yaml").read_text())["stages"]
     assert stages["check_params"]["deps"] == ["params.yaml", "../../params.yaml", "../../src/oodrl"]
     assert "--merged data/params.yaml" in stages["check_params"]["cmd"]
     # DVC reads a key from one file: the merged params check_params writes.
-    assert stages["fit"]["do"]["params"] == [{MERGED_PARAMS: ["detectors.${item}"]}]
+    kde = yaml.safe_load((env / detector_pipeline("kde_density")).read_text())["stages"]
+    assert kde["fit"]["params"] == [{MERGED_PARAMS: ["detectors.kde_density"]}]
+    assert kde["fit"]["wdir"] == "../.."  # paths stay relative to the environment's directory
     assert stages["collect_id"]["params"][0][MERGED_PARAMS][:2] == ["seed", "env"]
-    shared = yaml.safe_load((env_project / "params.yaml").read_text())
-    assert stages["fit"]["foreach"] == shared["benchmark"]["detectors"]
+    assert stages["collect_ood"]["foreach"] == shared["benchmark"]["injectors"]
+    assert kde["score"]["foreach"] == shared["benchmark"]["injectors"]
     assert stages["train_policy"]["outs"][0] == {
         "models/policy.pt": {"cache": False, "persist": True}
     }
@@ -111,9 +128,13 @@ def test_a_shared_fan_out_change_makes_environment_pipelines_stale(env_project):
     shared = yaml.safe_load((env_project / "params.yaml").read_text())
     shared["benchmark"]["detectors"].remove("pedm")
     (env_project / "params.yaml").write_text(yaml.safe_dump(shared))
-    check_pipeline(env_project / "dvc.yaml")  # the root fans out over ${benchmark.*}
-    with pytest.raises(ConfigError, match="pipeline/cartpole/dvc.yaml"):
+    with pytest.raises(ConfigError, match="detectors/pedm/dvc.yaml belongs to a detector"):
+        check_pipeline(env_project / "dvc.yaml")
+    with pytest.raises(ConfigError, match="pipeline/cartpole/detectors/pedm/dvc.yaml"):
         check_pipeline(env_project / "pipeline" / "cartpole" / "dvc.yaml")
+    write(env_project)
+    assert not (env_project / detector_pipeline("pedm")).exists()
+    check(env_project)
 
 
 def test_environment_stamps_name_its_adapter(env_project):

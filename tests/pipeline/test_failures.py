@@ -10,8 +10,9 @@ import time
 
 import pytest
 import yaml
-from conftest import INJECTORS, edit_params
+from conftest import INJECTORS, detector_stages, edit_params
 
+from oodrl.layout import detector_stage
 from oodrl.testing.pipeline import environment, repro, run
 
 pytestmark = pytest.mark.slow
@@ -31,15 +32,14 @@ def test_plugin_missing_from_dvc_yaml_stops_repro_until_pipeline_write(repo, plu
     assert done.returncode != 0
     assert "oodrl_test_plugin.py" in done.stderr and "oodrl pipeline write" in done.stderr
     run(repo, "oodrl", "pipeline", "write", env=plugin_env)
-    assert "fit@speed" in repro(repo, env=plugin_env)
+    assert detector_stage("speed", "fit") in repro(repo, env=plugin_env)
 
 
 def test_module_class_detector_is_fitted_scored_and_reported(repo, plugin_env):
     edit_params(repo, _add_detector("speed", {"class": "oodrl_test_plugin:SpeedDetector"}))
     run(repo, "oodrl", "pipeline", "write", env=plugin_env)
     ran = repro(repo, env=plugin_env)
-    assert {"fit@speed", "score_clean@speed", "metrics", "render"} <= set(ran)
-    assert {f"score@speed-{i}" for i in INJECTORS} <= set(ran)
+    assert {*detector_stages("speed"), "metrics", "render"} <= set(ran)
     results = yaml.safe_load((repo / "reports/results.yaml").read_text())
     speed = [r for r in results["records"] if r["detector"] == "speed" and r["kind"] == "anomaly"]
     assert sorted(r["anomaly"] for r in speed) == sorted(INJECTORS)
@@ -60,8 +60,10 @@ def test_failing_detector_names_itself_and_the_episode_and_keep_going_completes(
     edit_params(repo, lambda p: p["detectors"]["kde_density"].update(threshold_percentile=97.0))
     kept = run(repo, "dvc", "repro", "-k", check=False, env=plugin_env)
     assert kept.returncode != 0
-    assert "Running stage 'score@kde_density-stuck_actuator'" in kept.stdout
-    status = yaml.safe_load(run(repo, "dvc", "status", "--json", "dvc.yaml").stdout) or {}
+    stage = detector_stage("kde_density", "score", "stuck_actuator")
+    assert f"Running stage '{stage}'" in kept.stdout
+    status = run(repo, "dvc", "status", "--json", "--with-deps", "dvc.yaml").stdout
+    status = yaml.safe_load(status) or {}
     pending = {name for name in status if name not in ("metrics", "render")}
     assert pending and all("exploding" in name for name in pending), sorted(pending)
 
@@ -85,7 +87,7 @@ def test_killed_stage_leaves_no_half_written_output_and_next_repro_completes(rep
     assert not store.exists(), "a killed stage must not leave a store at its output path"
     ran = repro(repo)
     assert "collect_id" in ran
-    assert run(repo, "dvc", "status", "-q", "dvc.yaml", check=False).returncode == 0
+    assert run(repo, "dvc", "status", "-q", "--with-deps", "dvc.yaml", check=False).returncode == 0
     assert not list(store.parent.glob(".id.zarr.tmp-*"))
 
 
@@ -104,4 +106,5 @@ def test_corrupt_store_and_pickle_give_clear_errors(repo):
                "models/detectors/kde_density.pkl", "--eval", "data/id.zarr", "--out",
                "scores/x.zarr", check=False)  # fmt: skip
     assert done.returncode == 1
-    assert "dvc repro -s -f fit@kde_density" in done.stderr and "Traceback" not in done.stderr
+    hint = f"dvc repro -s -f {detector_stage('kde_density', 'fit')}"
+    assert hint in done.stderr and "Traceback" not in done.stderr

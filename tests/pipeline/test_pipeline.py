@@ -6,8 +6,9 @@ import json
 
 import pytest
 import yaml
-from conftest import DETECTORS, INJECTORS, edit_params
+from conftest import DETECTORS, INJECTORS, detector_stages, edit_params, injector_scoring
 
+from oodrl.layout import detector_pipeline, detector_stage
 from oodrl.testing.pipeline import lock_hashes, repro, run
 
 pytestmark = pytest.mark.slow
@@ -18,6 +19,7 @@ def test_full_pipeline_writes_every_output(built_repo):
         "data/id.zarr", "data/eval.zarr", "data/ood/stuck_actuator.zarr",
         "data/sweep/observation_delay.zarr", "models/detectors/kde_density.pkl",
         "scores/kde_density/eval.zarr", "scores/kde_density/stuck_actuator.zarr",
+        "scores/kde_density/sweep/stuck_actuator.zarr",
         "reports/results.yaml", "reports/sweep_results.yaml", "reports/metrics.json",
         "reports/tables.md", "reports/run_meta.yaml", "reports/headline.md",
         "reports/figures/matched_auroc_heatmap.png", "reports/figures/severity_curves.png",
@@ -40,7 +42,7 @@ def test_full_pipeline_writes_every_output(built_repo):
 
 def test_up_to_date_after_repro(repo):
     # The root pipeline's stages (the environments' pipelines are not built in the copy).
-    assert run(repo, "dvc", "status", "-q", "dvc.yaml", check=False).returncode == 0
+    assert run(repo, "dvc", "status", "-q", "--with-deps", "dvc.yaml", check=False).returncode == 0
     assert repro(repo) == []
 
 
@@ -54,8 +56,7 @@ def test_injector_param_reruns_only_that_injector(repo):
     ran = repro(repo)
     assert ran == sorted([
         "check_params", "collect_ood@observation_delay", "collect_sweep@observation_delay",
-        "score@kde_density-observation_delay", "score@mahalanobis_distance-observation_delay",
-        "metrics", "render",
+        *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render",
     ])  # fmt: skip
     after = lock_hashes(repo)
     assert after["data/ood/stuck_actuator.zarr"] == before["data/ood/stuck_actuator.zarr"]
@@ -66,8 +67,16 @@ def test_detector_param_reruns_only_that_detector(repo):
     edit_params(repo, lambda p: p["detectors"]["kde_density"].update(threshold_percentile=95.0))
     ran = repro(repo)
     assert ran == sorted([
-        "check_params", "fit@kde_density", "score_clean@kde_density",
-        "score@kde_density-observation_delay", "score@kde_density-stuck_actuator",
+        "check_params", *detector_stages("kde_density"), "metrics", "render",
+    ])  # fmt: skip
+
+
+def test_headline_severity_does_not_rescore_the_sweep(repo):
+    edit_params(repo, lambda p: p["anomaly"].update(severity=0.7))
+    ran = repro(repo)
+    assert ran == sorted([
+        "check_params", *(f"collect_ood@{i}" for i in INJECTORS),
+        *(detector_stage(d, "score", i) for d in DETECTORS for i in INJECTORS),
         "metrics", "render",
     ])  # fmt: skip
 
@@ -88,17 +97,20 @@ def _append_comment(repo, path: str) -> None:
 
 CODE_EDITS = {  # edited file -> the stages allowed to run (DVC skips those whose inputs held)
     "src/oodrl/detectors/kde.py": {
-        "check_params", "fit@kde_density", "score_clean@kde_density",
-        *(f"score@kde_density-{i}" for i in INJECTORS), "metrics", "render",
+        "check_params", *detector_stages("kde_density"), "metrics", "render",
     },
     "src/oodrl/injectors/posthoc.py": {  # observation_delay is the tiny params' post-hoc one
         "check_params", "collect_ood@observation_delay", "collect_sweep@observation_delay",
-        *(f"score@{d}-observation_delay" for d in DETECTORS), "metrics", "render",
+        *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render",
     },
     "src/oodrl/metrics/ranking.py": {"check_params", "metrics", "render"},
 }  # fmt: skip
 MUST_RUN = {  # the stages whose code stamp changed: they run even when outputs stay the same
-    "src/oodrl/detectors/kde.py": {"check_params", "fit@kde_density", "score_clean@kde_density"},
+    "src/oodrl/detectors/kde.py": {
+        "check_params",
+        detector_stage("kde_density", "fit"),
+        detector_stage("kde_density", "score_clean"),
+    },
     "src/oodrl/injectors/posthoc.py": {"collect_ood@observation_delay"},
     "src/oodrl/metrics/ranking.py": {"metrics"},
 }
@@ -116,12 +128,13 @@ def test_code_edit_in_a_shared_module_reruns_every_stage_that_executes_it(repo):
     """BaseDetector.score runs in every scoring stage, through the pickle."""
     _append_comment(repo, "src/oodrl/core/detector.py")
     ran = set(repro(repo))
-    assert {f"fit@{d}" for d in DETECTORS} | {f"score_clean@{d}" for d in DETECTORS} <= ran
-    assert {f"score@{d}-{i}" for d in DETECTORS for i in INJECTORS} <= ran
+    assert {stage for d in DETECTORS for stage in detector_stages(d)} <= ran
 
 
 def test_lock_stays_small(repo):
     """One stamp per stage instead of the files of its closure (SPEC §12)."""
     lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]
-    built = ["collect_id", f"fit@{DETECTORS[0]}", f"score@{DETECTORS[0]}-{INJECTORS[0]}", "render"]
-    assert all(len(lock[name]["deps"]) <= 6 for name in built)
+    detector_file = repo / detector_pipeline(DETECTORS[0])
+    detector_lock = yaml.safe_load(detector_file.with_suffix(".lock").read_text())["stages"]
+    assert all(len(lock[name]["deps"]) <= 6 for name in ["collect_id", "render"])
+    assert all(len(stage["deps"]) <= 6 for stage in detector_lock.values())

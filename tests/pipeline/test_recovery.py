@@ -12,8 +12,9 @@ import pytest
 from conftest import DETECTORS, INJECTORS, POLICY_FILES, edit_params
 
 from oodrl.errors import OodrlError
+from oodrl.layout import detector_stage
+from oodrl.metrics.results import read_results_file
 from oodrl.stages.common import load_detector
-from oodrl.stages.render import _load_yaml
 from oodrl.stages.train import RETRAIN_COMMAND
 from oodrl.store import read_trajectories, rerun_hint
 from oodrl.testing.pipeline import repro, run
@@ -52,18 +53,21 @@ def _commands(message: str) -> list[str]:
 
 def test_every_hint_reruns_only_the_broken_stage(repo):
     detector, injector = DETECTORS[0], INJECTORS[0]
+    fit = detector_stage(detector, "fit")
     broken = {  # stage -> the error its missing output raises in the stage that reads it
         "collect_eval": lambda: read_trajectories(repo / "absent.zarr", stage="collect_eval"),
-        f"fit@{detector}": lambda: load_detector(repo / "absent.pkl", stage=f"fit@{detector}"),
-        "metrics": lambda: _load_yaml(repo / "absent.yaml"),
+        fit: lambda: load_detector(repo / "absent.pkl", stage=fit),
+        "metrics": lambda: read_results_file(repo / "absent.yaml"),
     }
     for stage, fail in broken.items():
         with pytest.raises(OodrlError) as info:
             fail()
         assert rerun_hint(stage) in str(info.value)
-    stages = ["collect_id", "collect_eval", f"collect_ood@{injector}", f"collect_sweep@{injector}",
-              f"fit@{detector}", f"score_clean@{detector}", f"score@{detector}-{injector}",
-              "metrics", "render"]  # fmt: skip
+    stages = [
+        "collect_id", "collect_eval", f"collect_ood@{injector}", f"collect_sweep@{injector}",
+        fit, detector_stage(detector, "score_clean"), detector_stage(detector, "score", injector),
+        detector_stage(detector, "score_sweep", injector), "metrics", "render",
+    ]  # fmt: skip
     for stage in stages:
         (command,) = _commands(rerun_hint(stage))
         assert _dry_run(repo, command) == [stage], command

@@ -14,7 +14,8 @@ group (or as a `module:OBJECT` path) and are then computed for every anomaly rec
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,31 +34,9 @@ from oodrl.metrics.ranking import (
     fpr_at_tpr_rows,
     temporal_auroc_rows,
 )
-from oodrl.validation import Interval, check_params
 
-
-@dataclass(frozen=True)
-class MetricSettings:
-    """The `metrics` block of params.yaml: bootstrap, FPR target and temporal buffer."""
-
-    n_boot: int = 1000
-    ci: float = 0.95
-    tpr_target: float = 0.95
-    temporal_buffer: int = 10
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        check_params(
-            "MetricSettings",
-            asdict(self),
-            {
-                "n_boot": [Interval(int, 1, None)],
-                "ci": [Interval(float, 0, 1, closed="neither")],
-                "tpr_target": [Interval(float, 0, 1, closed="right")],
-                "temporal_buffer": [Interval(int, 0, None)],
-                "seed": [Interval(int, 0, None)],
-            },
-        )
+if TYPE_CHECKING:
+    from oodrl.config import MetricsConfig
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,7 +78,7 @@ class Metric:
     """A per-episode metric: `compute(batch, settings)` returns (N,) float64 values."""
 
     higher_is_better: bool
-    compute: Callable[[EpisodeBatch, MetricSettings], np.ndarray]
+    compute: Callable[[EpisodeBatch, MetricsConfig], np.ndarray]
     description: str = ""
 
 
@@ -131,11 +110,11 @@ NULL_METRICS: tuple[str, ...] = (
 )
 
 
-def _raw_auroc(b: EpisodeBatch, s: MetricSettings) -> np.ndarray:
+def _raw_auroc(b: EpisodeBatch, s: MetricsConfig) -> np.ndarray:
     return auroc_rows(b.perturbed, b.labels)
 
 
-def _null_auroc(b: EpisodeBatch, s: MetricSettings) -> np.ndarray:
+def _null_auroc(b: EpisodeBatch, s: MetricsConfig) -> np.ndarray:
     return auroc_rows(b.clean, b.labels)
 
 
@@ -249,7 +228,7 @@ def _batch(
 
 
 def _compute(
-    batch: EpisodeBatch, settings: MetricSettings, names: Iterable[str]
+    batch: EpisodeBatch, settings: MetricsConfig, names: Iterable[str]
 ) -> dict[str, np.ndarray]:
     n = batch.perturbed.shape[0]
     values: dict[str, np.ndarray] = {}
@@ -270,7 +249,7 @@ def episode_metrics(
     threshold: float,
     onset: int,
     offset: int | None,
-    settings: MetricSettings,
+    settings: MetricsConfig,
     detector: str = "",
     latency: int = 0,
 ) -> dict[str, np.ndarray]:
@@ -300,7 +279,7 @@ def null_episode_metrics(
     threshold: float,
     onset: int,
     offset: int | None,
-    settings: MetricSettings,
+    settings: MetricsConfig,
     detector: str = "",
     latency: int = 0,
 ) -> dict[str, np.ndarray]:
@@ -317,12 +296,14 @@ def null_episode_metrics(
 
 def summarise(
     per_episode: Mapping[str, np.ndarray],
-    settings: MetricSettings,
+    settings: MetricsConfig,
     paired: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None,
+    *,
+    seed: int,
 ) -> dict[str, dict[str, float | int]]:
     """metric -> {mean, std, ci_low, ci_high, n_episodes}, sorted by name, rounded to 6 decimals.
 
-    Every metric is resampled with the same episode draws (seeded by `settings.seed`).
+    Every metric is resampled with the same episode draws (seeded by `seed`, the run's).
     `paired` maps a name of `PAIRED_METRICS` to (raw, null) per-episode values — e.g.
     raw_auroc of the perturbed episodes and null_auroc of their matched clean ones — which are
     resampled with the same indices; it takes precedence over `per_episode[name]`. The values
@@ -335,7 +316,7 @@ def summarise(
         raise ContractError(
             f"No paired definition for {unknown}; paired metrics: {sorted(PAIRED_METRICS)}."
         )
-    options = {"n_boot": settings.n_boot, "ci": settings.ci, "seed": settings.seed}
+    options = {"n_boot": settings.n_boot, "ci": settings.ci, "seed": seed}
     summary: dict[str, dict[str, float | int]] = {}
     for name in sorted(set(per_episode) | set(paired)):
         arrays = paired[name] if name in paired else (per_episode[name],)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import pickle
+import re
 import time
 import warnings
 from collections.abc import Iterator
@@ -27,7 +28,8 @@ def timed_stage(name: str) -> Iterator[None]:
     yield
     TIMINGS_DIR.mkdir(parents=True, exist_ok=True)
     record = {"stage": name, "wall_s": round(time.perf_counter() - start, 3)}
-    (TIMINGS_DIR / f"{name.replace('@', '__')}.json").write_text(json.dumps(record))
+    file_name = re.sub(r"[^\w.-]+", "_", name)  # a stage's DVC address holds / : @
+    (TIMINGS_DIR / f"{file_name}.json").write_text(json.dumps(record))
 
 
 def save_detector(path: Path, detector, name: str, params: dict[str, Any]) -> None:

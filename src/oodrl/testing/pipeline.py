@@ -61,7 +61,10 @@ def copy_project(source: Path, dest: Path, params: dict[str, Any] | None = None)
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(source / name, target)
     if params is not None:
+        from oodrl.pipeline import write
+
         (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+        write(dest)  # other benchmark lists: other detectors' DVC files
     run(dest, "git", "init", "-q")
     run(dest, "git", "add", "-A")
     run(dest, "git", "commit", "-q", "-m", "copy of the project")
@@ -79,10 +82,12 @@ def repro(repo: Path, *args: str, env: dict[str, str] | None = None) -> list[str
 
 
 def lock_hashes(repo: Path) -> dict[str, str]:
-    """Output path -> md5 recorded in dvc.lock (the pipeline's content addresses)."""
-    lock = yaml.safe_load((repo / "dvc.lock").read_text())
+    """Output path -> md5 recorded in the root pipeline's locks (its content addresses)."""
+    from oodrl.layout import DETECTOR_PIPELINES
+
     hashes = {}
-    for stage in lock["stages"].values():
-        for out in stage.get("outs", []):
-            hashes[out["path"]] = out["md5"]
+    for path in [repo / "dvc.lock", *sorted((repo / DETECTOR_PIPELINES).glob("*/dvc.lock"))]:
+        for stage in yaml.safe_load(path.read_text())["stages"].values():
+            for out in stage.get("outs", []):
+                hashes[out["path"]] = out["md5"]
     return hashes

@@ -1,0 +1,40 @@
+"""Where a pipeline keeps its score stores and its detectors' stages: spelled once.
+
+Paths are relative to the pipeline's directory (the root, or `pipeline/<env>/`), where every
+stage command runs. Each detector's fit and scoring stages live in their own DVC file,
+`detectors/<detector>/dvc.yaml` (see pipeline.yaml for why), so a stage's DVC address is
+`detectors/<detector>/dvc.yaml:<stage>`; the environment's other stages are in `dvc.yaml`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+#: One DVC file per detector under here: its fit, clean scoring, and per-injector scoring.
+DETECTOR_PIPELINES = "detectors"
+#: Group names inside score stores.
+CLEAN_GROUP = "clean"
+HEADLINE_GROUP = "headline"
+
+
+def detector_pipeline(detector: str) -> str:
+    """The DVC file holding `detector`'s fit and scoring stages."""
+    return f"{DETECTOR_PIPELINES}/{detector}/dvc.yaml"
+
+
+def detector_stage(detector: str, stage: str, injector: str | None = None) -> str:
+    """The DVC address of one of a detector's stages: 'fit', 'score_clean', 'score@<injector>'
+    (headline severity) or 'score_sweep@<injector>'."""
+    name = stage if injector is None else f"{stage}@{injector}"
+    return f"{detector_pipeline(detector)}:{name}"
+
+
+def score_store(scores_dir: Path, detector: str, injector: str | None = None) -> Path:
+    """`detector`'s scores of the clean evaluation set (`injector` None) or of one injector's
+    headline set."""
+    return Path(scores_dir) / detector / f"{injector or 'eval'}.zarr"
+
+
+def sweep_score_store(scores_dir: Path, detector: str, injector: str) -> Path:
+    """`detector`'s scores of one injector's sweep sets (one group per severity)."""
+    return Path(scores_dir) / detector / "sweep" / f"{injector}.zarr"

@@ -1,0 +1,197 @@
+"""A run's results (SPEC §6, §7): one typed record per (detector, anomaly) headline cell and per
+null baseline, and the severity sweep, computed from the score stores of a pipeline's score
+stages (paths in `oodrl.layout`).
+
+`results.yaml` holds `{"records": [record, ...]}`, each record as `ResultRecord.as_dict` writes
+it; `sweep_results.yaml` holds `{"modes": {injector: mode}, "sweep": {injector: {severity:
+{detector: summary}}}}`. A summary maps a metric to {mean, std, ci_low, ci_high, n_episodes}.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from oodrl import yamlio
+from oodrl.config import Params
+from oodrl.core.spec import make_labels
+from oodrl.errors import StoreError
+from oodrl.layout import (
+    CLEAN_GROUP,
+    HEADLINE_GROUP,
+    detector_stage,
+    score_store,
+    sweep_score_store,
+)
+from oodrl.progress import progress_bar
+from oodrl.store import read_scores, rerun_hint, severity_key
+
+Summary = dict[str, dict[str, float | int]]
+
+#: Metrics whose per-episode values headline records keep, for the suite's leaderboard
+#: (its stratified bootstrap resamples the episodes of every cell).
+EPISODE_METRICS = ("matched_auroc",)
+
+
+@dataclass(frozen=True)
+class ResultRecord:
+    """One detector's metric summaries on one condition: an injector's anomaly at its headline
+    severity (`kind` "anomaly"), or the clean evaluation set against the counterfactual labels
+    of one execution mode (`kind` "null": `anomaly` "null", `severity` None)."""
+
+    kind: Literal["anomaly", "null"]
+    detector: str
+    anomaly: str
+    mode: str
+    severity: float | None
+    latency: int
+    metrics: Summary
+    episodes: dict[str, list[float]] | None = None
+    """Per-episode values of EPISODE_METRICS; anomaly records only."""
+
+    def as_dict(self) -> dict[str, Any]:
+        """The record as results.yaml holds it (a null record has no `episodes`).
+
+        Not `dataclasses.asdict`: its deep copy would part the null records of two modes,
+        which share one summary and so one YAML anchor in results.yaml.
+        """
+        record = {field.name: getattr(self, field.name) for field in dataclasses.fields(self)}
+        if self.episodes is None:
+            del record["episodes"]
+        return record
+
+
+@dataclass(frozen=True)
+class Results:
+    """Every record (sorted by kind, detector, anomaly, mode), each injector's execution mode,
+    and the sweep summaries by injector, severity and detector."""
+
+    records: list[ResultRecord]
+    modes: dict[str, str]
+    sweep: dict[str, dict[float, dict[str, Summary]]]
+
+    def results_document(self) -> dict[str, Any]:
+        """results.yaml's content."""
+        return {"records": [record.as_dict() for record in self.records]}
+
+    def sweep_document(self) -> dict[str, Any]:
+        """sweep_results.yaml's content."""
+        return {"modes": self.modes, "sweep": self.sweep}
+
+
+def read_results_file(path: Path) -> Any:
+    """results.yaml or sweep_results.yaml, as the metrics stage wrote it."""
+    if not Path(path).is_file():
+        raise StoreError(f"{path}: missing; {rerun_hint('metrics')}.")
+    return yamlio.load(Path(path).read_text())
+
+
+def _summary(
+    group: dict, clean: np.ndarray, threshold: float, spec: dict, params: Params, detector, latency
+) -> tuple[Summary, dict[str, list[float]]]:
+    """Mean, std and CI of every metric for one perturbed set against its matched clean set,
+    and the per-episode values of EPISODE_METRICS."""
+    from oodrl.metrics.aggregate import episode_metrics, summarise
+
+    per_episode = episode_metrics(
+        group["scores"], clean, group["labels"], threshold,
+        spec["onset"], spec["offset"], params.metrics, detector, latency,
+    )  # fmt: skip
+    kept = {m: [round(float(v), 6) + 0.0 for v in per_episode[m]] for m in EPISODE_METRICS}
+    return summarise(per_episode, params.metrics, seed=params.seed), kept
+
+
+def _null_summary(params: Params, clean: np.ndarray, threshold: float, detector, latency):
+    """The null baseline: clean scores judged against the counterfactual labels."""
+    from oodrl.metrics.aggregate import null_episode_metrics, summarise
+
+    T, onset, offset = params.env.T, params.env.resolved_onset, params.anomaly.offset
+    labels = np.tile(make_labels(T, onset, offset), (clean.shape[0], 1))
+    per_episode = null_episode_metrics(
+        clean, labels, threshold, onset, offset, params.metrics, detector, latency
+    )
+    return summarise(per_episode, params.metrics, seed=params.seed)
+
+
+def _detector_results(params: Params, scores_dir: Path, detector: str):
+    """One detector's records, its sweep summaries, and the injectors' modes."""
+    # The look-ahead follows from the detector's params alone (e.g. lyapunov's horizon).
+    latency = params.detector(detector).latency
+    eval_path = score_store(scores_dir, detector)
+    clean_groups, clean_attrs = read_scores(
+        eval_path, stage=detector_stage(detector, "score_clean")
+    )
+    clean = clean_groups[CLEAN_GROUP]["scores"]
+    threshold = float(clean_attrs["threshold"])
+    records, sweep, modes = [], {}, {}
+    for injector in params.benchmark.injectors:
+        path = score_store(scores_dir, detector, injector)
+        groups, attrs = read_scores(path, stage=detector_stage(detector, "score", injector))
+        sweep_path = sweep_score_store(scores_dir, detector, injector)
+        sweep_groups, sweep_attrs = read_scores(
+            sweep_path, stage=detector_stage(detector, "score_sweep", injector)
+        )
+        spec, modes[injector] = attrs["spec"], attrs["mode"]
+        headline, episodes = _summary(
+            groups[HEADLINE_GROUP], clean, threshold, spec, params, detector, latency
+        )
+        records.append(
+            ResultRecord("anomaly", detector, injector, attrs["mode"], spec["severity"],
+                         latency, headline, episodes)
+        )  # fmt: skip
+        for severity in sweep_attrs["severities"]:
+            sweep[(injector, float(severity))], _ = _summary(
+                sweep_groups[severity_key(severity)], clean, threshold,
+                {**sweep_attrs["spec"], "severity": severity}, params, detector, latency,
+            )  # fmt: skip
+    null = _null_summary(params, clean, threshold, detector, latency)
+    records.extend(
+        ResultRecord("null", detector, "null", mode, None, latency, null)
+        for mode in sorted(set(modes.values()))
+    )
+    return records, sweep, modes
+
+
+def compute_results(params: Params, scores_dir: Path) -> Results:
+    """Every (detector, anomaly) headline record, the null baselines, and the sweep.
+
+    Detectors are summarised in parallel (executor.workers); each summary is seeded alone,
+    so the results do not depend on the worker count. The clean evaluation set is the
+    matched counterpart of both execution modes (online runs re-use its seeds), so each
+    mode's null baseline is computed on the same clean scores.
+    """
+    detectors = params.benchmark.detectors
+    workers = min(params.executor.resolved_workers, len(detectors))
+    with progress_bar(len(detectors), "metrics", params.executor.progress) as bar:
+        if workers > 1:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            context = multiprocessing.get_context("fork")
+            with ProcessPoolExecutor(workers, mp_context=context) as pool:
+                futures = [pool.submit(_detector_results, params, scores_dir, d) for d in detectors]
+                parts = []
+                for future in futures:
+                    parts.append(future.result())
+                    bar.update()
+        else:
+            parts = []
+            for detector in detectors:
+                parts.append(_detector_results(params, scores_dir, detector))
+                bar.update()
+    records: list[ResultRecord] = []
+    sweep: dict[str, dict[float, dict[str, Summary]]] = {i: {} for i in params.benchmark.injectors}
+    modes: dict[str, str] = {}
+    for detector, (detector_records, detector_sweep, detector_modes) in zip(
+        detectors, parts, strict=True
+    ):
+        records.extend(detector_records)
+        modes.update(detector_modes)
+        for (injector, severity), summary in detector_sweep.items():
+            sweep[injector].setdefault(severity, {})[detector] = summary
+    records.sort(key=lambda r: (r.kind, r.detector, r.anomaly, r.mode))
+    return Results(records, modes, sweep)
