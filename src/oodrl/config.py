@@ -33,7 +33,9 @@ class EnvConfig(_Section):
 
     @property
     def resolved_onset(self) -> int:
-        return self.T // 3 if self.onset is None else self.onset
+        from oodrl.core.spec import default_onset
+
+        return default_onset(self.T) if self.onset is None else self.onset
 
 
 class DataConfig(_Section):

@@ -8,7 +8,6 @@ number of workers. Online faults hook into the live rollout on labelled steps on
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +17,7 @@ from oodrl.core.injector import Fault
 from oodrl.core.policy import Policy
 from oodrl.core.trajectory import TrajectorySet
 from oodrl.errors import PolicyError
+from oodrl.parallel import ordered_map
 
 #: Streams per block; part of the protocol (it fixes the policy's batch shapes).
 BLOCK_SIZE = 16
@@ -187,27 +187,12 @@ def _run_blocks(
     workers: int,
     progress: Callable[[int], None] | None,
 ) -> list[dict[str, np.ndarray]]:
-    if workers > 1 and len(jobs) > 1:
-        import multiprocessing
-
-        context = multiprocessing.get_context("fork")
-        with ProcessPoolExecutor(min(workers, len(jobs)), mp_context=context) as pool:
-            futures = [
-                pool.submit(_rollout_block, adapter, policy, block, T, labels, policy_seed)
-                for _, block, labels in jobs
-            ]
-            parts = []
-            for (_, block, _), future in zip(jobs, futures, strict=True):
-                parts.append(future.result())
-                if progress:
-                    progress(len(block.seeds))
-            return parts
-    parts = []
-    for _, block, labels in jobs:
-        parts.append(_rollout_block(adapter, policy, block, T, labels, policy_seed))
+    def done(job: tuple) -> None:
         if progress:
-            progress(len(block.seeds))
-    return parts
+            progress(len(job[2].seeds))
+
+    blocks = [(adapter, policy, block, T, labels, policy_seed) for _, block, labels in jobs]
+    return ordered_map(_rollout_block, blocks, workers, on_done=done)
 
 
 def collect(

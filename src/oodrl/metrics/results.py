@@ -27,6 +27,7 @@ from oodrl.layout import (
     score_store,
     sweep_score_store,
 )
+from oodrl.parallel import ordered_map
 from oodrl.progress import progress_bar
 from oodrl.store import read_scores, rerun_hint, severity_key
 
@@ -165,24 +166,10 @@ def compute_results(params: Params, scores_dir: Path) -> Results:
     mode's null baseline is computed on the same clean scores.
     """
     detectors = params.benchmark.detectors
-    workers = min(params.executor.resolved_workers, len(detectors))
     with progress_bar(len(detectors), "metrics", params.executor.progress) as bar:
-        if workers > 1:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            context = multiprocessing.get_context("fork")
-            with ProcessPoolExecutor(workers, mp_context=context) as pool:
-                futures = [pool.submit(_detector_results, params, scores_dir, d) for d in detectors]
-                parts = []
-                for future in futures:
-                    parts.append(future.result())
-                    bar.update()
-        else:
-            parts = []
-            for detector in detectors:
-                parts.append(_detector_results(params, scores_dir, detector))
-                bar.update()
+        jobs = [(params, scores_dir, detector) for detector in detectors]
+        workers = params.executor.resolved_workers
+        parts = ordered_map(_detector_results, jobs, workers, on_done=lambda _: bar.update())
     records: list[ResultRecord] = []
     sweep: dict[str, dict[float, dict[str, Summary]]] = {i: {} for i in params.benchmark.injectors}
     modes: dict[str, str] = {}

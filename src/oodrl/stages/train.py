@@ -3,28 +3,19 @@
 The trained policy is committed (models/policy.pt and its report), and training takes 13
 minutes, so the stage trains only on purpose: with OODRL_RETRAIN_POLICY=1 in its environment.
 Otherwise DVC re-running it (a code edit in its import closure, a replaced policy file) keeps
-the policy that is there; a missing policy, or policy.train settings that differ from those it
-was trained with, stop the stage with the commands that restore it or retrain it.
+the policy that is there (`oodrl.policies.trainers`).
 """
 
 from __future__ import annotations
 
-import json
-import os
 from pathlib import Path
 from typing import Any
 
 from oodrl.config import Params
-from oodrl.errors import ConfigError, PolicyError
+from oodrl.policies.trainers import RETRAIN_COMMAND, kept_policy, retrain_requested, trainer
 from oodrl.progress import progress_enabled
 
-RETRAIN_VARIABLE = "OODRL_RETRAIN_POLICY"
-#: The command that retrains on purpose (-s: nothing else is re-run with it).
-RETRAIN_COMMAND = f"{RETRAIN_VARIABLE}=1 dvc repro -s -f train_policy"
-
-
-def retrain_requested() -> bool:
-    return os.environ.get(RETRAIN_VARIABLE) == "1"
+__all__ = ["RETRAIN_COMMAND", "retrain_requested", "train_policy"]
 
 
 def train_policy(params: Params, out: Path, report: Path, retrain: bool) -> dict[str, Any]:
@@ -33,43 +24,3 @@ def train_policy(params: Params, out: Path, report: Path, retrain: bool) -> dict
     if not retrain:
         return kept_policy(config.as_dict(), out, report)
     return trainer(config)(config, out, report, progress=progress_enabled(params.executor.progress))
-
-
-def trainer(config):
-    """The training function of a `policy.train` settings type: the NoisyNet DQN (discrete
-    actions) or SAC (continuous control; imports Stable-Baselines3 only when it trains)."""
-    from oodrl.policies.settings import SacConfig, TrainConfig
-
-    if isinstance(config, TrainConfig):
-        from oodrl.policies.train import train
-
-        return train
-    if isinstance(config, SacConfig):
-        from oodrl.policies.sac import train_sac
-
-        return train_sac
-    raise ConfigError(f"policy.train: no trainer for {type(config).__name__}.")
-
-
-def kept_policy(settings: dict[str, Any], out: Path, report: Path) -> dict[str, Any]:
-    """The report of the policy at `out`, refused when missing or trained with other settings."""
-    missing = [str(path) for path in (out, report) if not path.is_file()]
-    if missing:
-        raise PolicyError(
-            f"{' and '.join(missing)} missing; restore the committed policy with "
-            f"`git checkout -- {out} {report}`, or retrain on purpose (13 min) with "
-            f"`{RETRAIN_COMMAND}`."
-        )
-    recorded = json.loads(report.read_text()).get("train_config", {})
-    keys = settings.keys() | recorded.keys()
-    changed = sorted(k for k in keys if settings.get(k) != recorded.get(k))
-    if changed:
-        key = changed[0]
-        raise ConfigError(
-            f"policy.train.{key}: {settings.get(key)!r}, but {out} was trained with "
-            f"{recorded.get(key)!r}; restore policy.train, or retrain on purpose (13 min) with "
-            f"`{RETRAIN_COMMAND}`."
-        )
-    print(f"train_policy: keeping {out} (trained with these policy.train settings); "
-          f"to retrain: `{RETRAIN_COMMAND}`.")  # fmt: skip
-    return json.loads(report.read_text())
