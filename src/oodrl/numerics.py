@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import decimal
 import math
+import threading
 from fractions import Fraction
 
 import numpy as np
@@ -71,9 +72,11 @@ def linear(x: np.ndarray, weight: np.ndarray, bias: np.ndarray | None = None) ->
     """
     x32 = np.asarray(x, dtype=np.float32)
     w32 = np.asarray(weight, dtype=np.float32)
-    x64 = x32.astype(np.float64)
+    x64 = _scratch("x64", x32.shape, np.float64)
+    x64[...] = x32
     w64_t = np.swapaxes(w32, -1, -2).astype(np.float64)  # (..., k, m)
-    y = x64 @ w64_t
+    shape = np.broadcast_shapes(x32.shape[:-2], w32.shape[:-2]) + (x32.shape[-2], w32.shape[-2])
+    y = np.matmul(x64, w64_t, out=_scratch("y", shape, np.float64))
     k = x32.shape[-1]
     abs_x, abs_w_t = np.abs(x32), np.swapaxes(np.abs(w32), -1, -2)
     # Long sums (gradients over a batch) cancel, and leave many entries to level 2.
@@ -81,7 +84,7 @@ def linear(x: np.ndarray, weight: np.ndarray, bias: np.ndarray | None = None) ->
     magnitude = _float32_bound(abs_x, abs_w_t if every else abs_w_t.max(axis=-1, keepdims=True))
     b64 = abs_b = None
     if bias is not None:
-        b64 = np.broadcast_to(np.asarray(bias, dtype=np.float32).astype(np.float64), y.shape)
+        b64 = np.asarray(bias, dtype=np.float32).astype(np.float64)  # as given: broadcasts
         y += b64
         abs_b = np.abs(b64)
         magnitude = magnitude + (abs_b if every else abs_b.max(axis=-1, keepdims=True))
@@ -110,7 +113,7 @@ def linear(x: np.ndarray, weight: np.ndarray, bias: np.ndarray | None = None) ->
     # Products of two float32 numbers are exact in float64: the sums below are exact.
     products = rows[(*lead, i)] * cols[(*lead, j)]
     if b64 is not None:
-        products = np.concatenate([products, b64[index][:, None]], 1)
+        products = np.concatenate([products, np.broadcast_to(b64, y.shape)[index][:, None]], 1)
     rounded, still = _round_within(values, 2 * gamma * np.abs(products).sum(axis=1))
     for entry in np.flatnonzero(still):
         rounded[entry] = _nearest_float32_of_sum(products[entry].tolist())
@@ -137,6 +140,24 @@ def _float32_bound(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     with np.errstate(over="ignore"):
         product = a @ b
     return product.astype(np.float64) * (1.0 + 4.0 * (k + 1) * 2.0**-24) + (k + 1) * 2.0**-148
+
+
+_SCRATCH = threading.local()
+
+
+def _scratch(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+    """A temporary array of this thread, reused from call to call under ``name``.
+
+    Fresh large arrays cost page faults each time (the allocator hands their memory back to
+    the system); `linear`'s temporaries are the same few shapes thousands of times. The array
+    is valid until the next request under the same name: use it within one function call.
+    """
+    size = math.prod(shape)
+    buffer = getattr(_SCRATCH, name, None)
+    if buffer is None or buffer.size < size or buffer.dtype != dtype:
+        buffer = np.empty(size, dtype)
+        setattr(_SCRATCH, name, buffer)
+    return buffer[:size].reshape(shape)
 
 
 def _gamma(n: int) -> float:
@@ -189,18 +210,29 @@ def matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     rows = math.prod(lead)
     if m >= 4 and rows >= max(1024, 16 * m) and k > 1:
         a_t = np.moveaxis(a, -1, 0).reshape(k, rows)  # a copy unless already (k, rows)
-        b_t = b[:, :, None]
-        out = np.multiply(b_t[0], a_t[0])
-        term = np.empty_like(out)
-        for j in range(1, k):
-            np.multiply(b_t[j], a_t[j], out=term)
-            out += term
-        out = np.ascontiguousarray(out.T).reshape(*lead, m)
+        out = np.ascontiguousarray(matmul_transposed(a_t, b).T).reshape(*lead, m)
     else:
         out = a[..., 0, None] * b[0]
         for j in range(1, k):
             out += a[..., j, None] * b[j]
     return out[..., 0] if vector else out
+
+
+def matmul_transposed(a_t: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``(a_tᵀ @ b)ᵀ``, (m, rows), for ``a_t`` (k, rows) and ``b`` (k, m): `matmul` on operands
+    laid out along the summed axis, summing over it in index order, without BLAS.
+
+    Row j of ``a_t`` is one contiguous array: each step is one (m, rows) multiply and add with
+    long inner loops, which every CPU rounds identically.
+    """
+    a_t = np.asarray(a_t, dtype=np.float64)
+    b_t = np.asarray(b, dtype=np.float64)[:, :, None]
+    out = np.multiply(b_t[0], a_t[0])
+    term = np.empty_like(out)
+    for j in range(1, len(a_t)):
+        np.multiply(b_t[j], a_t[j], out=term)
+        out += term
+    return out
 
 
 def spd_cholesky(matrix: np.ndarray) -> np.ndarray:
@@ -299,12 +331,26 @@ def certify(values: np.ndarray, bound: np.ndarray, exact, bits: int = CERTIFIED_
     """
     shape = np.shape(values)
     values = np.atleast_1d(np.asarray(values, dtype=np.float64))
-    bound = np.broadcast_to(bound, values.shape)
     finite = np.isfinite(values)
-    # 2·bound + tiny: also covers the rounding of values ± bound themselves.
+    # 2·bound + tiny: also covers the rounding of the sums below.
     margin = 2 * np.where(finite, bound, 0.0) + np.finfo(np.float64).tiny
-    result = _round_bits(values, bits)
-    uncertain = (_round_bits(values - margin, bits) != _round_bits(values + margin, bits)) & finite
+    # r = values rounded to `bits` bits (Veltkamp split, as `_round_bits`); values − r is exact.
+    # Every float of the open interval (r − h, r + h), h half the smaller spacing of `bits`-bit
+    # numbers next to r, rounds to r; so do values ± margin, and the true value, where
+    # |values − r| + margin < h. h = 2^(e−bits) for 2^e the power of two just below |r| (the
+    # exponent field of |r|·(1 − 2⁻⁵³): e − 1 where |r| = 2^e, whose lower spacing is half);
+    # h = 0 for subnormal r. The comparison is false for NaN: non-finite values, and values
+    # whose split overflows (near the top of the float64 range), count as uncertain here.
+    factor = 2.0 ** (53 - bits) + 1.0
+    with np.errstate(over="ignore", invalid="ignore"):
+        scaled = values * factor
+        rounded = scaled - (scaled - values)
+        distance = np.abs(values - rounded)
+        distance += margin
+        below = np.abs(rounded) * (1.0 - 2.0**-53)
+        power = (below.view(np.int64) & np.int64(0x7FF0000000000000)).view(np.float64)
+        uncertain = ~(distance < power * 2.0**-bits) & finite
+    result = np.where(np.isfinite(rounded), rounded, values)
     for index in zip(*np.nonzero(uncertain), strict=True):
         result[index] = _round_bits(np.float64(exact(index if shape else ())), bits)
     return result.reshape(shape)
@@ -346,7 +392,7 @@ def _round_ends(y: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, np.ndarra
     """
     margin = 2 * bound + np.finfo(np.float64).tiny
     low = np.empty(np.shape(y), np.float32)
-    high = np.empty(np.shape(y), np.float32)
+    high = _scratch("high", np.shape(y), np.float32)
     np.subtract(y, margin, out=low, casting="same_kind")
     np.add(y, margin, out=high, casting="same_kind")
     return low, high

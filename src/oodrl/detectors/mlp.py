@@ -105,13 +105,18 @@ def gaussian_mean_and_logvar(outputs: np.ndarray) -> tuple[np.ndarray, np.ndarra
     (float64): logvar = MIN + softplus(MAX − softplus(MAX − raw) − MIN)."""
     half = outputs.shape[-1] // 2
     mean, raw = outputs[..., :half], np.asarray(outputs[..., half:], dtype=np.float64)
-    bounded_above = MAX_LOGVAR - numerics.softplus(MAX_LOGVAR - raw)
-    return mean, MIN_LOGVAR + numerics.softplus(bounded_above - MIN_LOGVAR)
+    return mean, _soft_bounds(raw)[1]
 
 
-def _logvar_slope(raw: np.ndarray) -> np.ndarray:
-    """d logvar / d raw of `gaussian_mean_and_logvar`'s soft bounds (chain rule, float64)."""
+def _soft_bounds(raw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """MAX − softplus(MAX − raw) (bounded above) and the log-variance bounded on both sides."""
     bounded_above = MAX_LOGVAR - numerics.softplus(MAX_LOGVAR - raw)
+    return bounded_above, MIN_LOGVAR + numerics.softplus(bounded_above - MIN_LOGVAR)
+
+
+def _logvar_slope(raw: np.ndarray, bounded_above: np.ndarray) -> np.ndarray:
+    """d logvar / d raw of `gaussian_mean_and_logvar`'s soft bounds (chain rule, float64), given
+    the `bounded_above` of `_soft_bounds(raw)`."""
     return _softplus_slope(bounded_above - MIN_LOGVAR) * _softplus_slope(MAX_LOGVAR - raw)
 
 
@@ -128,7 +133,9 @@ def gaussian_nll(outputs: np.ndarray, targets: np.ndarray) -> tuple[float, np.nd
     """Gaussian negative log-likelihood (up to a constant) of each member, summed over members:
     ½ [(y − μ)² e^−logvar + logvar], averaged over each member's rows and coordinates."""
     outputs = outputs.astype(np.float64)
-    mean, logvar = gaussian_mean_and_logvar(outputs)
+    half = outputs.shape[-1] // 2
+    mean, raw = outputs[..., :half], outputs[..., half:]
+    bounded_above, logvar = _soft_bounds(raw)
     precision = numerics.exp(-logvar)
     residual = targets - mean
     weighted = residual * residual * precision
@@ -136,7 +143,7 @@ def gaussian_nll(outputs: np.ndarray, targets: np.ndarray) -> tuple[float, np.nd
     value = float((0.5 * (weighted + logvar)).sum(axis=-1).sum(axis=-1).sum()) / count
     grad_mean = -residual * precision / count
     grad_logvar = 0.5 * (1.0 - weighted) / count
-    grad_raw = grad_logvar * _logvar_slope(outputs[..., mean.shape[-1] :])
+    grad_raw = grad_logvar * _logvar_slope(raw, bounded_above)
     return value, np.concatenate([grad_mean, grad_raw], axis=-1).astype(np.float32)
 
 
@@ -147,14 +154,17 @@ def gradients(
     (as an `EnsembleWeights` without `relu`)."""
     layers = weights.activations(inputs)
     value, grad = loss(layers[-1], targets)
-    ones = np.ones((1, grad.shape[-2]), dtype=np.float32)
     grad_weights: list[np.ndarray] = []
     grad_biases: list[np.ndarray] = []
     for index in reversed(range(len(weights.weights))):
         grad_t = np.swapaxes(grad, -1, -2)
-        # dW = dYᵀ X and db = 1ᵀ dY, correctly rounded like the forward products.
-        grad_weights.append(numerics.linear(grad_t, np.swapaxes(layers[index], -1, -2)))
-        grad_biases.append(numerics.linear(ones, grad_t))
+        # dW = dYᵀ X and db = dYᵀ 1, correctly rounded like the forward products: one product
+        # with [X, 1] (each entry is the same exact sum, so the same float32, as two products).
+        layer = layers[index]
+        augmented = np.concatenate([layer, np.ones((*layer.shape[:-1], 1), np.float32)], -1)
+        both = numerics.linear(grad_t, np.swapaxes(augmented, -1, -2))  # (M, out, in + 1)
+        grad_weights.append(both[..., :-1])
+        grad_biases.append(np.ascontiguousarray(np.swapaxes(both[..., -1:], -1, -2)))
         if index > 0:
             grad = numerics.linear(grad, np.swapaxes(weights.weights[index], -1, -2))
             if weights.relu[index - 1]:
