@@ -14,9 +14,12 @@ checkout (``data/``, ``models/detectors/``):
 - ``linear``: ``numerics.linear`` on the shapes of one pedm training step, repeated.
 
 ``--cli`` times the whole commands instead (interpreter start, imports, reading and writing
-stores). Example::
+stores; where a revision's CLI scores the headline set and the sweep in separate commands,
+the two are timed together). Example::
 
     python benchmarks/numerics_speed.py --base 83c1784 --new HEAD --repeats 3
+    python benchmarks/numerics_speed.py --base 83c1784 --new HEAD --cli \
+        --only src/oodrl/numerics.py src/oodrl/detectors/kde.py src/oodrl/detectors/mlp.py
 
 ``OPENBLAS_NUM_THREADS`` defaults to 1 (set it to compare multi-threaded BLAS): on a shared,
 loaded machine a second BLAS thread mostly waits for a core.
@@ -117,7 +120,7 @@ print(json.dumps({"seconds": seconds, "digest": hashlib.sha256(output).hexdigest
 
 WORKLOADS = ("kde_score", "time_series_score", "pedm_score", "ensemble_score", "pedm_fit", "linear")
 
-#: The commands the brief's profile timed, for --cli ({out} is a temporary path).
+#: The commands timed by --cli (verb, detector), as in the profile that motivated this work.
 CLI = {
     "kde_score": ["score", "kde_density"],
     "time_series_score": ["score", "time_series_features"],
@@ -152,22 +155,35 @@ def run_once(src: Path, workload: str, cli: bool, scratch: Path) -> tuple[float,
         result = json.loads(done.stdout.strip().splitlines()[-1])
         return result["seconds"], result["digest"]
     verb, name = CLI[workload]
-    out = scratch / f"{name}.{'pkl' if verb == 'fit' else 'zarr'}"
-    args = (
-        ["--id", "data/id.zarr"]
-        if verb == "fit"
-        else [
-            "--injector", INJECTOR, "--model", f"models/detectors/{name}.pkl",
-            "--ood", f"data/ood/{INJECTOR}.zarr", "--sweep", f"data/sweep/{INJECTOR}.zarr",
-        ]
-    )  # fmt: skip
-    command = [sys.executable, "-m", "oodrl", verb, name, *args, "--out", str(out)]
-    start = time.perf_counter()
-    done = subprocess.run(command, cwd=ROOT, env=env, capture_output=True, text=True, check=False)
-    seconds = time.perf_counter() - start
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(command)} under {src} failed:\n{done.stderr[-3000:]}")
+    model = f"models/detectors/{name}.pkl"
+    if verb == "fit":
+        commands = [["fit", name, "--id", "data/id.zarr", "--out", str(scratch / "fit.pkl")]]
+    else:
+        ood, sweep = f"data/ood/{INJECTOR}.zarr", f"data/sweep/{INJECTOR}.zarr"
+        score = ["score", name, "--injector", INJECTOR, "--model", model]
+        commands = [[*score, "--ood", ood, "--sweep", sweep, "--out", str(scratch / "s.zarr")]]
+        if not _takes_ood_and_sweep_together(src):
+            # Later CLIs score the headline set and the sweep in two commands (two stages).
+            commands = [
+                [*score, "--ood", ood, "--out", str(scratch / "headline.zarr")],
+                [*score, "--sweep", sweep, "--out", str(scratch / "sweep.zarr")],
+            ]
+    seconds = 0.0
+    for command in commands:
+        start = time.perf_counter()
+        done = subprocess.run(
+            [sys.executable, "-m", "oodrl", *command],
+            cwd=ROOT, env=env, capture_output=True, text=True, check=False,
+        )  # fmt: skip
+        seconds += time.perf_counter() - start
+        if done.returncode != 0:
+            raise RuntimeError(f"oodrl {' '.join(command)} under {src} failed:\n{done.stderr}")
     return seconds, "-"
+
+
+def _takes_ood_and_sweep_together(src: Path) -> bool:
+    """Whether this revision's ``oodrl score`` scores --ood and --sweep in one command."""
+    return "exactly one of --eval" not in (src / "oodrl" / "cli.py").read_text()
 
 
 def main() -> None:
@@ -176,6 +192,9 @@ def main() -> None:
     parser.add_argument("--new", default="worktree", help="new revision, or 'worktree'")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--cli", action="store_true", help="time the whole oodrl commands")
+    parser.add_argument(
+        "--only", nargs="+", metavar="PATH", help="new = base with only these src/ files from --new"
+    )
     parser.add_argument("workloads", nargs="*", default=None, help=f"of {', '.join(WORKLOADS)}")
     options = parser.parse_args()
     workloads = options.workloads or (list(CLI) if options.cli else list(WORKLOADS))
@@ -185,7 +204,16 @@ def main() -> None:
             "old": export(options.base, scratch / "old"),
             "new": export(options.new, scratch / "new"),
         }
-        print(f"old = {options.base}, new = {options.new}, best of {options.repeats}")
+        if options.only:
+            # The base tree with only these files from the new revision: isolates them from
+            # whatever else changed between the revisions (a CLI's commands, say).
+            mixed = export(options.base, scratch / "mixed")
+            for path in options.only:
+                relative = Path(path).relative_to("src")
+                (mixed / relative).write_bytes((trees["new"] / relative).read_bytes())
+            trees["new"] = mixed
+        only = f" (only {', '.join(options.only)})" if options.only else ""
+        print(f"old = {options.base}, new = {options.new}{only}, best of {options.repeats}")
         print(f"{'workload':<20} {'old s':>8} {'new s':>8} {'new/old':>8}  outputs")
         for workload in workloads:
             times: dict[str, list[float]] = {"old": [], "new": []}

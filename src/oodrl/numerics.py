@@ -11,9 +11,14 @@ result, a quantity that has one answer whatever the summation order:
    by any BLAS kernel is within ``γ_{k+1} · (|x| @ |W|.T + |b|)`` of the exact sum, in any
    summation order (Higham, *Accuracy and Stability of Numerical Algorithms*, §3.1).
 2. Rounding is monotonic: if both ends of that interval round to the same float32, so does the
-   exact value, and that float32 is the answer.
+   exact value, and that float32 is the answer. The magnitude ``|x| @ |W|.T`` need not be
+   exact, only an upper bound: :func:`linear` starts from a cheap per-row one and tightens it
+   only for the entries it leaves uncertain (see its docstring).
 3. Otherwise (rare, unless the sum cancels: gradients) the entry is summed exactly with
    ``math.fsum`` over the exact float64 products and rounded to the nearest float32 (ties to even).
+
+A zero result is always +0: an interval around zero rounds to ±0 at both ends, and which sign
+the kernel's rounding produced is not part of the answer.
 
 ``tanh`` is handled the same way: any libm's float64 ``tanh`` is within a few ulp of the truth;
 the rare entries whose interval straddles a float32 rounding boundary are computed with
@@ -24,7 +29,9 @@ The detectors compute in float64, where the same problems appear: numpy's own ``
 ``tanh`` and FFT have per-CPU SIMD implementations that differ in the last bits, and BLAS
 products and LAPACK solves depend on the kernel. For them:
 
-- :func:`matmul` sums products in one fixed order with elementwise numpy operations (no BLAS);
+- :func:`matmul` sums products in one fixed order with elementwise numpy operations (no BLAS),
+  or BLAS's product certified against that order where a caller bounds the difference
+  (``kde_density``'s exponents);
 - :func:`spd_inverse` and :func:`spd_solve` are a Cholesky factorisation whose inner products
   are ``math.fsum`` (exactly rounded);
 - :func:`exp`, :func:`log` and :func:`softplus` return the true value rounded to 32 significant
