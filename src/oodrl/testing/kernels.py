@@ -69,8 +69,9 @@ for name in params.benchmark.detectors:
     fit.fit_detector(params, name, out / "data/id.zarr", model)
     score.score_clean(name, model, out / "data/eval.zarr", out / f"scores/{name}/eval.zarr")
     for injector in injectors:
-        data = [out / f"data/{kind}/{injector}.zarr" for kind in ("ood", "sweep")]
-        score.score_injector(name, injector, model, *data, out / f"scores/{name}/{injector}.zarr")
+        for kind, run in [("ood", score.score_headline), ("sweep", score.score_sweep)]:
+            data = out / f"data/{kind}/{injector}.zarr"
+            run(name, injector, model, data, out / f"scores/{name}/{kind}/{injector}.zarr")
 """
 
 
