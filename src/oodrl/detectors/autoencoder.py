@@ -4,9 +4,7 @@ z_t = ‖x_t − g(f(x_t))‖², x_t the standardised features of step t (state 
 encoder to a linear `latent_dim` bottleneck and g its mirror-image decoder, trained with the mean
 squared reconstruction error on the fit set. The error is measured in standardised units.
 
-The networks are ReLU MLPs trained with Adam in numpy (`oodrl.detectors.mlp`): ReLU, unlike
-SiLU or tanh, is exact, and every product is correctly rounded, so the fitted weights and the
-scores are the same bytes on every machine (SPEC §14).
+Networks, and why they are the same bytes on every machine: `oodrl.detectors.neural`.
 """
 
 from __future__ import annotations

@@ -9,9 +9,7 @@ fit transitions. The score is their spread about the ensemble mean:
 in standardised increment units. It uses (s_t, a_t) only, never the observed s_{t+1}: it flags
 inputs the ensemble has not learned, not transitions that contradict what it has learned.
 
-The networks are ReLU MLPs trained with Adam in numpy (`oodrl.detectors.mlp`): ReLU, unlike
-SiLU or tanh, is exact, and every product is correctly rounded, so the fitted weights and the
-scores are the same bytes on every machine (SPEC §14).
+Networks, and why they are the same bytes on every machine: `oodrl.detectors.neural`.
 """
 
 from __future__ import annotations
@@ -36,10 +34,8 @@ class EnsembleDisagreement(TransitionEnsemble):
     ----------
     n_members : int >= 2, default 5
         Ensemble size M.
-    hidden_sizes : list of int, default [64, 64]
-    epochs : int >= 1, default 30
-    batch_size : int >= 1, default 256
-    lr : float > 0, default 1e-3
+    hidden_sizes, epochs, batch_size, lr
+        Training (`NeuralDetector`): defaults [64, 64], 30, 256, 1e-3.
     """
 
     name: ClassVar[str] = "ensemble_disagreement"

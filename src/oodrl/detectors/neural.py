@@ -1,7 +1,8 @@
 """What the neural detectors (`pedm`, `autoencoder`, `ensemble_disagreement`) share.
 
-They train and score numpy MLP ensembles (`oodrl.detectors.mlp`) whose every operation is
-machine-independent (SPEC §14): a fitted detector's pickle and its scores are the same bytes on
+They train and score numpy ReLU MLP ensembles with Adam (`oodrl.detectors.mlp`) whose every
+operation is machine-independent (SPEC §14): ReLU, unlike SiLU or tanh, is exact, and every
+product is correctly rounded, so a fitted detector's pickle and its scores are the same bytes on
 every x86-64 machine, and no stage needs torch.
 """
 

@@ -17,9 +17,7 @@ trajectory and its matched clean one see the same noise (common random numbers).
 
 The alarm threshold defaults to the maximum held-out score (`threshold_rule="max"`).
 
-The networks are ReLU MLPs trained with Adam in numpy (`oodrl.detectors.mlp`): ReLU, unlike
-SiLU or tanh, is exact, and every product is correctly rounded, so the fitted weights and the
-scores are the same bytes on every machine (SPEC §14).
+Networks, and why they are the same bytes on every machine: `oodrl.detectors.neural`.
 """
 
 from __future__ import annotations
@@ -49,12 +47,8 @@ class Pedm(TransitionEnsemble):
         Ensemble size M.
     n_samples : int >= 1, default 10
         Samples K drawn from each member per step.
-    hidden_sizes : list of int, default [64, 64]
-        Hidden layer widths of every member.
-    epochs : int >= 1, default 30
-    batch_size : int >= 1, default 256
-    lr : float > 0, default 1e-3
-        Adam learning rate.
+    hidden_sizes, epochs, batch_size, lr
+        Training (`NeuralDetector`): defaults [64, 64], 30, 256, 1e-3.
     threshold_rule : default "max"
         The maximum held-out score (SPEC §5); "percentile" uses `threshold_percentile`.
     """
