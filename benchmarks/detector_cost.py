@@ -3,8 +3,9 @@
 
     python benchmarks/detector_cost.py [--env LunarLander-v3] [--steps 200] [--fit 4] [names...]
 
-Detector parameters are the class defaults. Latency is measured over every step of `--score`
-streams fed one update at a time (flushes included), after one warm-up stream.
+Detector parameters are the class defaults; fit time is `fit` plus `calibrate`. Latency is
+measured by `oodrl.cost` (as the pipeline's render stage measures it into run_meta.yaml) over
+every step of `--score` streams fed one update at a time (flushes included).
 """
 
 from __future__ import annotations
@@ -18,7 +19,6 @@ import pickle  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -37,41 +37,18 @@ def clean_streams(env_id: str, n: int, steps: int, first_seed: int = 20_000) -> 
     return collect(adapter, policy, seeds, steps).trajectories()
 
 
-def stream_latencies(detector, trajectories) -> np.ndarray:
-    """Seconds of each `update` (the step's flush added to the last one), stream by stream."""
-    stream = detector.stream()
-    latencies = []
-    for trajectory in trajectories:
-        for t in range(trajectory.T):
-            args = (
-                trajectory.states[t],
-                trajectory.actions[t],
-                trajectory.rewards[t],
-                trajectory.next_states[t],
-                trajectory.dones[t],
-            )
-            start = time.perf_counter()
-            stream.update(*args)
-            if t == trajectory.T - 1:
-                stream.flush()
-            latencies.append(time.perf_counter() - start)
-    return np.array(latencies)
-
-
 def detector_cost(name: str, fit, calibration, scored) -> dict[str, float]:
+    from oodrl.cost import step_latency_us
     from oodrl.detectors import DETECTORS
 
     start = time.perf_counter()
     detector = DETECTORS.get(name)().fit(fit)
-    fit_s = time.perf_counter() - start
     detector.calibrate(calibration)
-    stream_latencies(detector, scored[:1])  # warm-up: imports, caches, the KD-tree
-    latencies = stream_latencies(detector, scored)
+    fit_s = time.perf_counter() - start
     return {
         "fit_s": fit_s,
         "size_kib": len(pickle.dumps(detector, protocol=5)) / 1024,
-        "median_us": float(np.median(latencies)) * 1e6,
-        "p99_us": float(np.percentile(latencies, 99)) * 1e6,
+        **step_latency_us(detector, scored),
     }
 
 
@@ -85,7 +62,7 @@ def main() -> None:
     parser.add_argument("--fit", type=int, default=4)
     parser.add_argument("--score", type=int, default=2)
     args = parser.parse_args()
-    data = clean_streams(args.env, 2 * args.fit + args.score + 1, args.steps)
+    data = clean_streams(args.env, 2 * args.fit + args.score, args.steps)
     fit, calibration = data[: args.fit], data[args.fit : 2 * args.fit]
     scored = data[2 * args.fit :]
     print(f"{args.env}: fit on {args.fit} x {args.steps} steps; latency over "
@@ -96,7 +73,7 @@ def main() -> None:
             cost = detector_cost(name, fit, calibration, scored)
             print(
                 f"{name:24} {cost['fit_s']:8.2f} {cost['size_kib']:9.1f} "
-                f"{cost['median_us']:10.0f} {cost['p99_us']:9.0f}",
+                f"{cost['step_us_median']:10.0f} {cost['step_us_p99']:9.0f}",
                 flush=True,
             )
 

@@ -194,11 +194,22 @@ def monitor(
 
 
 @command("show")
-def show(path: Annotated[Path, typer.Argument(help="results.yaml or sweep_results.yaml")]) -> None:
-    """Render the tables of a results or sweep file in the terminal."""
+def show(
+    path: Annotated[Path, typer.Argument(help="results.yaml, sweep_results.yaml or run_meta.yaml")],
+    max_us_per_step: Annotated[
+        float | None,
+        typer.Option(
+            min=0.0,
+            help="run_meta.yaml only: keep detectors whose median µs/step is at most this, and "
+            "name the most accurate",
+        ),
+    ] = None,
+) -> None:
+    """Render the tables of a results or sweep file in the terminal; of a run_meta.yaml, each
+    detector's fit time, fitted size and µs per streamed step beside its matched AUROC."""
     from oodrl.report.show import show as render
 
-    typer.echo(render(path))
+    typer.echo(render(path, max_us_per_step))
 
 
 # -- stage verbs (dvc.yaml is their caller) ---------------------------------------------------
@@ -288,8 +299,8 @@ def fit(
 
     config = _load(params)
     _known(detector, config.benchmark.detectors, "benchmark.detectors")
-    with _stage(detector_stage(detector, "fit")):
-        fit_detector(config, detector, id, out)
+    with _stage(detector_stage(detector, "fit")) as record:
+        record.update(detector=detector, fit_s=round(fit_detector(config, detector, id, out), 3))
 
 
 @command("score")
@@ -367,18 +378,33 @@ def render(
     sweep_results: Annotated[Path, PathOption()],
     scores: Annotated[Path, PathOption()],
     policy: Annotated[Path, PathOption()],
+    models: Annotated[Path, PathOption()],
+    eval: Annotated[Path, PathOption()],  # noqa: A002 - the option is --eval
     figures: Annotated[Path, PathOption()],
     plots: Annotated[Path, PathOption()],
     headline: Annotated[Path, PathOption()],
     meta: Annotated[Path, PathOption()],
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Stage render: figures, DVC plot data, headline table, run_meta.yaml."""
+    """Stage render: figures, DVC plot data, headline table, run_meta.yaml (with each
+    detector's fit time, fitted size and streaming latency, measured on clean --eval streams)."""
     from oodrl.stages.render import run_render
 
     config = _load(params)
     with _stage("render"):
-        run_render(config, results, sweep_results, scores, policy, figures, plots, headline, meta)
+        run_render(
+            config,
+            results,
+            sweep_results,
+            scores,
+            policy,
+            models,
+            eval,
+            figures,
+            plots,
+            headline,
+            meta,
+        )
 
 
 # -- pipeline verbs -----------------------------------------------------------------------

@@ -60,7 +60,7 @@ VERB_COMPONENTS: dict[str, tuple[str, ...]] = {
     "collect-ood": ("injector", "environment"),
     "collect-id": ("environment",),
     "collect-eval": ("environment",),
-    "render": ("environment",),
+    "render": ("environment", "detectors"),  # it streams every benchmark detector (its cost)
     "metrics": ("detectors",),  # every benchmark detector, built for its latency
 }
 

@@ -38,6 +38,13 @@ def test_full_pipeline_writes_every_output(built_repo):
         assert record["metrics"]["matched_auroc"]["n_episodes"] == 3
     nulls = {(r["detector"], r["mode"]) for r in results["records"] if r["kind"] == "null"}
     assert nulls == {(d, m) for d in DETECTORS for m in ("online", "posthoc")}
+    cost = yaml.safe_load((built_repo / "reports/run_meta.yaml").read_text())["cost"]
+    assert sorted(cost) == sorted(DETECTORS)  # SPEC §13: cost beside accuracy, per detector
+    for detector, entry in cost.items():
+        pickle = built_repo / "models" / "detectors" / f"{detector}.pkl"
+        assert entry["fit_s"] > 0, detector  # recorded by the fit stage
+        assert entry["fitted_bytes"] == pickle.stat().st_size
+        assert entry["step_us_p99"] >= entry["step_us_median"] > 0
 
 
 def test_up_to_date_after_repro(repo):
@@ -136,5 +143,6 @@ def test_lock_stays_small(repo):
     lock = yaml.safe_load((repo / "dvc.lock").read_text())["stages"]
     detector_file = repo / detector_pipeline(DETECTORS[0])
     detector_lock = yaml.safe_load(detector_file.with_suffix(".lock").read_text())["stages"]
-    assert all(len(lock[name]["deps"]) <= 6 for name in ["collect_id", "render"])
+    assert len(lock["collect_id"]["deps"]) <= 6
+    assert len(lock["render"]["deps"]) <= 7  # the reports it draws, and what its cost times
     assert all(len(stage["deps"]) <= 6 for stage in detector_lock.values())

@@ -1,4 +1,5 @@
-"""A run's provenance (run_meta.yaml): versions, host, stage wall times, params, seeds, policy.
+"""A run's provenance (run_meta.yaml): versions, host, stage wall times, params, seeds, policy,
+and each detector's cost (fit time, fitted size, streaming latency).
 
 Not a DVC output: it holds timings and host facts by design.
 """
@@ -29,15 +30,28 @@ def _device() -> str:
     return f"cpu ({len(os.sched_getaffinity(0))} cores available)"
 
 
-def run_meta(params: Params, policy_path: Path, timings_dir: Path) -> dict[str, Any]:
-    """Provenance of this run; stage wall times from the records under `timings_dir`."""
+def timing_records(timings_dir: Path) -> list[dict[str, Any]]:
+    """The records `timed_stage` wrote under `timings_dir`, one per stage, by file name."""
+    return [json.loads(path.read_text()) for path in sorted(timings_dir.glob("*.json"))]
+
+
+def fit_seconds(records: list[dict[str, Any]]) -> dict[str, float]:
+    """detector -> seconds its last fit stage spent in fit and calibrate."""
+    return {r["detector"]: r["fit_s"] for r in records if "fit_s" in r}
+
+
+def run_meta(
+    params: Params,
+    policy_path: Path,
+    records: list[dict[str, Any]],
+    cost: dict[str, dict[str, Any]],
+) -> dict[str, Any]:
+    """Provenance of this run: stage wall times from the `timing_records`, and each detector's
+    `cost` (fit time, fitted size, µs per streamed step) beside its accuracy in results.yaml."""
     from oodrl.envs import ENVIRONMENTS
     from oodrl.protocol import eval_seeds, id_seeds
 
-    timings = {}
-    for path in sorted(timings_dir.glob("*.json")):
-        record = json.loads(path.read_text())
-        timings[record["stage"]] = record["wall_s"]
+    timings = {record["stage"]: record["wall_s"] for record in records}
     return {
         "oodrl_version": library_versions()["oodrl"],
         "git_commit": _git_commit(),
@@ -50,4 +64,5 @@ def run_meta(params: Params, policy_path: Path, timings_dir: Path) -> dict[str, 
         "seeds": {"id": id_seeds(params), "eval": eval_seeds(params)},
         "env": {"id": params.env.id, "version": ENVIRONMENTS.get(params.env.id).version()},
         "policy_sha256": hashlib.sha256(Path(policy_path).read_bytes()).hexdigest(),
+        "cost": cost,
     }

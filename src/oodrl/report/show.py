@@ -1,4 +1,5 @@
-"""`oodrl show PATH`: the tables of a results.yaml or sweep_results.yaml as terminal text."""
+"""`oodrl show PATH`: the tables of a results.yaml, sweep_results.yaml or run_meta.yaml (its
+detectors' cost beside their accuracy) as terminal text."""
 
 from __future__ import annotations
 
@@ -9,19 +10,19 @@ from typing import Any
 import yaml
 
 from oodrl import yamlio
-from oodrl.errors import StoreError
-from oodrl.report.tables import render_tables, sweep_tables
+from oodrl.errors import ConfigError, StoreError
+from oodrl.report.tables import cost_table, render_tables, sweep_tables
 
 RECORD_KEYS = frozenset({"kind", "detector", "anomaly", "mode", "severity", "metrics"})
 
 
 def load_report(path: str | Path) -> tuple[str, dict[str, Any]]:
-    """("results" | "sweep", contents) of a report file; StoreError for anything else."""
+    """("results" | "sweep" | "meta", contents) of a report file; StoreError for anything else."""
     path = Path(path)
     if not path.is_file():
         raise StoreError(
-            f"No report file at '{path}'. Pass a results.yaml or sweep_results.yaml "
-            "(the metrics stage writes them to reports/; run `dvc repro` first)."
+            f"No report file at '{path}'. Pass a results.yaml, sweep_results.yaml or "
+            "run_meta.yaml (the pipeline writes them to reports/; run `dvc repro` first)."
         )
     try:
         data = yamlio.load(path.read_text(encoding="utf-8"))
@@ -37,9 +38,11 @@ def load_report(path: str | Path) -> tuple[str, dict[str, Any]]:
         return "results", dict(data)
     if isinstance(data, Mapping) and isinstance(data.get("sweep"), Mapping):
         return "sweep", dict(data)
+    if isinstance(data, Mapping) and isinstance(data.get("cost"), Mapping):
+        return "meta", dict(data)
     raise StoreError(
-        f"'{path}' is neither a results file (a 'records' list) nor a sweep file "
-        "(a 'sweep' mapping)."
+        f"'{path}' is neither a results file (a 'records' list), a sweep file (a 'sweep' "
+        "mapping) nor a run_meta.yaml with detector costs (a 'cost' mapping)."
     )
 
 
@@ -51,7 +54,20 @@ def _is_record(record: Any) -> bool:
     )
 
 
-def show(path: str | Path) -> str:
-    """The markdown tables of a results or sweep file, for printing in a terminal."""
+def show(path: str | Path, max_us_per_step: float | None = None) -> str:
+    """The markdown tables of a results or sweep file, for printing in a terminal; of a
+    run_meta.yaml, its detectors' cost beside their accuracy in the results.yaml beside it
+    (if there is one), only those at most `max_us_per_step` (median) when given."""
     kind, data = load_report(path)
-    return render_tables(data) if kind == "results" else sweep_tables(data)
+    if kind != "meta" and max_us_per_step is not None:
+        raise ConfigError(
+            f"--max-us-per-step filters a run_meta.yaml's detector costs; '{path}' is a {kind} "
+            "file. Pass reports/run_meta.yaml."
+        )
+    if kind == "results":
+        return render_tables(data)
+    if kind == "sweep":
+        return sweep_tables(data)
+    results_path = Path(path).with_name("results.yaml")
+    results = load_report(results_path)[1] if results_path.is_file() else None
+    return cost_table(data["cost"], results, max_us_per_step)

@@ -5,8 +5,9 @@ severity, latency, metrics: {name: {mean, std, ci_low, ci_high, n_episodes}}}, .
 `kind` "anomaly" or "null" (`latency`, the detector's look-ahead in steps, may be missing in
 files written before it existed). `sweep` is the mapping of sweep_results.yaml:
 `{"sweep": {injector: {severity: {detector: {name: stats}}}}, "modes": {injector: mode}}`.
-A metric missing from a record is shown as "—". Which detector is "best" follows the
-metric's `higher_is_better`.
+`cost` is the `cost:` mapping of run_meta.yaml: `{detector: {fit_s, fitted_bytes,
+step_us_median, step_us_p99}}`. A metric missing from a record is shown as "—". Which
+detector is "best" follows the metric's `higher_is_better`.
 """
 
 from __future__ import annotations
@@ -304,6 +305,50 @@ def sweep_tables(sweep: Mapping[str, Any], metric: str = "matched_auroc") -> str
         mode = f" ({modes[injector]})" if injector in modes else ""
         parts += [f"### {injector}{mode}", markdown_table(header, rows)]
     return "\n\n".join(parts) + "\n"
+
+
+def cost_table(
+    cost: Mapping[str, Mapping[str, Any]],
+    results: Mapping[str, Any] | None = None,
+    max_us_per_step: float | None = None,
+) -> str:
+    """Each detector's cost (run_meta.yaml `cost:`) beside its mean matched AUROC (from
+    `results`, if given), most accurate first (SPEC §13). With `max_us_per_step`, only the
+    detectors whose median µs/step is at most that, and a line naming the most accurate one."""
+    aurocs = detector_means(anomaly_records(results or {}), HEADLINE_METRIC)
+    kept = {
+        d: c
+        for d, c in cost.items()
+        if max_us_per_step is None or c["step_us_median"] <= max_us_per_step
+    }
+    order = best_first({d: aurocs.get(d) for d in kept}, HEADLINE_METRIC)
+    header = [
+        "detector", LABELS[HEADLINE_METRIC], "fit s", "size KiB", "µs/step median", "µs/step p99"
+    ]  # fmt: skip
+    rows = [
+        [
+            d,
+            fmt(aurocs.get(d)),
+            fmt(kept[d].get("fit_s"), 2),
+            fmt(kept[d]["fitted_bytes"] / 1024, 1),
+            fmt(kept[d]["step_us_median"], 1),
+            fmt(kept[d]["step_us_p99"], 1),
+        ]
+        for d in order
+    ]
+    table = markdown_table(header, rows) + "\n"
+    if max_us_per_step is None:
+        return table
+    budget = f"≤ {max_us_per_step:g} µs/step (median)"
+    if not order:
+        return f"No detector streams at {budget}.\n"
+    best = order[0]
+    if aurocs.get(best) is None:
+        return f"{table}\nNo results.yaml beside it: the detectors at {budget} are not ranked.\n"
+    return (
+        f"{table}\nMost accurate at {budget}: {best} ({LABELS[HEADLINE_METRIC]} "
+        f"{aurocs[best]:.3f}).\n"
+    )
 
 
 def render_tables(results: Mapping[str, Any], sweep: Mapping[str, Any] | None = None) -> str:

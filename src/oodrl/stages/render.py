@@ -16,19 +16,27 @@ def run_render(
     sweep_path: Path,
     scores_dir: Path,
     policy_path: Path,
+    models_dir: Path,
+    eval_path: Path,
     figures_dir: Path,
     plots_dir: Path,
     headline_path: Path,
     meta_path: Path,
 ) -> None:
+    from oodrl.cost import detector_costs
     from oodrl.metrics.results import read_results_file
     from oodrl.report.figures import write_figures
     from oodrl.report.plots import write_dvc_plot_data
-    from oodrl.report.provenance import run_meta
+    from oodrl.report.provenance import fit_seconds, run_meta, timing_records
     from oodrl.report.tables import headline_table
+    from oodrl.store import read_trajectories
 
     results, sweep = read_results_file(results_path), read_results_file(sweep_path)
     write_figures(params, results, sweep, scores_dir, figures_dir)
     write_dvc_plot_data(results, sweep, plots_dir)
     atomic_write_text(headline_path, headline_table(results))
-    atomic_write_text(meta_path, yamlio.dump(run_meta(params, policy_path, TIMINGS_DIR)))
+    records = timing_records(TIMINGS_DIR)
+    models = {name: models_dir / f"{name}.pkl" for name in params.benchmark.detectors}
+    clean = read_trajectories(eval_path, stage="collect_eval").trajectories()
+    cost = detector_costs(models, clean, fit_seconds(records))
+    atomic_write_text(meta_path, yamlio.dump(run_meta(params, policy_path, records, cost)))
