@@ -38,7 +38,8 @@ def full_run(source: Path, dest: Path) -> tuple[float, dict[str, float]]:
     meta = yaml.safe_load((repo / "reports" / "run_meta.yaml").read_text())
     kinds: dict[str, float] = collections.defaultdict(float)
     for stage, wall in meta["stage_wall_s"].items():
-        kinds[stage.split("@")[0]] += float(wall)
+        # 'score@d-i' (old layout) and 'detectors/d/dvc.yaml:score@i' are both kind 'score'.
+        kinds[stage.rpartition(":")[2].split("@")[0]] += float(wall)
     return seconds, dict(kinds)
 
 

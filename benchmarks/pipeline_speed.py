@@ -7,8 +7,9 @@ In a fresh copy of the repository (committed policies, no outputs):
 1. Per pipeline, its simulation floor: roll out every episode it simulates (ID, clean
    evaluation, each online injector's headline and sweep sets) with the collector and nothing
    else — no stores written, no detectors.
-2. Per pipeline, a full `dvc repro <pipeline>/dvc.yaml`; then the suite's leaderboard (only
-   when every pipeline is built).
+2. Per pipeline, a full `dvc repro <pipeline>/dvc.yaml` and the seconds spent inside its stage
+   commands (the rest is process start-up and DVC's own bookkeeping); then the suite's
+   leaderboard (only when every pipeline is built).
 3. A no-op `dvc repro` of the whole suite (or of the pipelines built).
 4. On the root pipeline (LunarLander, the paper default): one injector's knob, one detector's
    knob, and `dvc exp run -S anomaly.severity=0.6`, each timed with the stages it ran.
@@ -55,6 +56,12 @@ def simulation_floor(pipeline: Path) -> tuple[float, int]:
             sets += protocol.perturbed_sets(params, name, severities, policy, eval_path)
         elapsed += time.perf_counter() - start
     return elapsed, sum(s.states.shape[0] * s.states.shape[1] for s in sets)
+
+
+def stage_bodies(pipeline: Path) -> float:
+    """Seconds inside the stage commands of a pipeline's last run (their own timing records)."""
+    records = (pipeline / ".oodrl" / "timings").glob("*.json")
+    return sum(json.loads(path.read_text())["wall_s"] for path in records)
 
 
 def timed_repro(repo: Path, *args: str) -> tuple[float, list[str]]:
@@ -112,12 +119,14 @@ def main() -> None:
             floor, steps = simulation_floor(repo / name)
             target = f"{name}/dvc.yaml" if name != "." else "dvc.yaml"
             full, ran = timed_repro(repo, target)
+            bodies = stage_bodies(repo / name)
             rows.append({"pipeline": name, "floor_s": floor, "steps": steps, "full_s": full,
-                         "stages": len(ran)})  # fmt: skip
+                         "stage_bodies_s": bodies, "stages": len(ran)})  # fmt: skip
             floor_total += floor
             full_total += full
             print(f"{name}: {steps} steps, floor {floor:.1f} s; full {full:.1f} s "
-                  f"({len(ran)} stages) = {full / floor:.1f}× the floor", flush=True)  # fmt: skip
+                  f"({len(ran)} stages; {bodies:.1f} s inside stage commands) = "
+                  f"{full / floor:.1f}× the floor", flush=True)  # fmt: skip
         suite_target = SUITE if args.pipelines == every else None
         if suite_target:
             seconds, ran = timed_repro(repo, suite_target)

@@ -205,3 +205,14 @@ def test_summarise_paired_matches_the_per_episode_pairs():
         summarise({}, SETTINGS, {"f1": (result["f1"], result["f1"])}, seed=0)
     with pytest.raises(ContractError, match="'f1'"):
         summarise({"f1": np.array([np.nan, 1.0])}, SETTINGS, seed=0)
+
+
+def test_clean_false_alarms_per_step_and_per_episode():
+    clean = np.zeros((4, 10))
+    clean[0, 3] = clean[0, 7] = 2.0  # two false alarms in episode 0
+    clean[2, 9] = 1.0  # one in episode 2, at the threshold (z ≥ θ alarms)
+    labels = np.zeros((4, 10), dtype=bool)
+    labels[:, 5:] = True
+    null = null_episode_metrics(clean, labels, 1.0, 5, None, SETTINGS)
+    assert null["clean_alarm_rate"].tolist() == [0.2, 0.0, 0.1, 0.0]
+    assert null["clean_episode_alarm"].tolist() == [1.0, 0.0, 1.0, 0.0]

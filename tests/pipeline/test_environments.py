@@ -42,7 +42,7 @@ def _ran(repo: Path) -> set[str]:
 def test_environment_pipeline_builds_in_its_directory(cartpole_repo):
     env = cartpole_repo / ENV
     results = yaml.safe_load((env / "reports/results.yaml").read_text())
-    anomaly = {(r["detector"], r["anomaly"]) for r in results["records"] if r["kind"] == "anomaly"}
+    anomaly = {(r["detector"], r["injector"]) for r in results["records"] if r["kind"] == "anomaly"}
     assert anomaly == {(d, i) for d in DETECTORS for i in INJECTORS}
     attrs = read_trajectories(env / "data/id.zarr", stage="collect_id").attrs
     assert (attrs["env_id"], attrs["T"]) == ("CartPole-v1", 60)

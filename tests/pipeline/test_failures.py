@@ -42,7 +42,7 @@ def test_module_class_detector_is_fitted_scored_and_reported(repo, plugin_env):
     assert {*detector_stages("speed"), "metrics", "render"} <= set(ran)
     results = yaml.safe_load((repo / "reports/results.yaml").read_text())
     speed = [r for r in results["records"] if r["detector"] == "speed" and r["kind"] == "anomaly"]
-    assert sorted(r["anomaly"] for r in speed) == sorted(INJECTORS)
+    assert sorted(r["injector"] for r in speed) == sorted(INJECTORS)
     assert "speed" in (repo / "reports/tables.md").read_text()
 
 

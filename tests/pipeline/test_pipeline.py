@@ -28,7 +28,7 @@ def test_full_pipeline_writes_every_output(built_repo):
         assert (built_repo / path).exists(), path
     results = yaml.safe_load((built_repo / "reports/results.yaml").read_text())
     anomaly = [r for r in results["records"] if r["kind"] == "anomaly"]
-    assert {(r["detector"], r["anomaly"]) for r in anomaly} == {
+    assert {(r["detector"], r["injector"]) for r in anomaly} == {
         (d, i) for d in DETECTORS for i in INJECTORS
     }
     for record in anomaly:

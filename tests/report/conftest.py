@@ -36,7 +36,7 @@ def make_results(seed=0):
                 {
                     "kind": "null",
                     "detector": detector,
-                    "anomaly": "null",
+                    "injector": None,
                     "mode": null_mode,
                     "severity": None,
                     "latency": LATENCY.get(detector, 0),
@@ -52,7 +52,7 @@ def make_results(seed=0):
                 {
                     "kind": "anomaly",
                     "detector": detector,
-                    "anomaly": anomaly,
+                    "injector": anomaly,
                     "mode": mode,
                     "severity": 0.5,
                     "latency": LATENCY.get(detector, 0),
@@ -66,7 +66,7 @@ def make_results(seed=0):
                 }
             )
     records.sort(
-        key=lambda r: (r["kind"], r["detector"], r["anomaly"], r["mode"], r["severity"] or 0)
+        key=lambda r: (r["kind"], r["detector"], r["injector"] or "", r["mode"], r["severity"] or 0)
     )
     return {"records": records}
 

@@ -18,14 +18,14 @@ DETECTORS = ("cusum", "kde_density", "pedm")
 def write_results(path: Path, seed: int, strength: dict[str, float]) -> Path:
     rng = np.random.default_rng(seed)
     records = [
-        {"kind": "null", "detector": d, "anomaly": "null", "mode": "posthoc", "metrics": {}}
+        {"kind": "null", "detector": d, "injector": None, "mode": "posthoc", "metrics": {}}
         for d in DETECTORS
     ]
     for anomaly in ("gaussian_state_noise", "stuck_actuator"):
         for d in DETECTORS:
             episodes = np.clip(strength[d] + 0.05 * rng.standard_normal(6), 0, 1)
             records.append({
-                "kind": "anomaly", "detector": d, "anomaly": anomaly, "mode": "posthoc",
+                "kind": "anomaly", "detector": d, "injector": anomaly, "mode": "posthoc",
                 "metrics": {}, "episodes": {"matched_auroc": [float(v) for v in episodes]},
             })  # fmt: skip
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -97,7 +97,7 @@ def test_dvc_plot_data(results, sweep, tmp_path):
 
 def test_headline_severity_comes_from_the_results(results):
     assert headline_severities(results) == dict.fromkeys(
-        {r["anomaly"] for r in results["records"] if r["kind"] == "anomaly"}, 0.5
+        {r["injector"] for r in results["records"] if r["kind"] == "anomaly"}, 0.5
     )
 
 

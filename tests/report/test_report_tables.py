@@ -3,6 +3,7 @@
 import json
 
 from oodrl.report.tables import (
+    false_alarm_table,
     headline_table,
     markdown_table,
     metrics_json,
@@ -28,7 +29,7 @@ def record(detector, anomaly, mode="posthoc", severity=0.5, kind="anomaly", **me
     return {
         "kind": kind,
         "detector": detector,
-        "anomaly": anomaly,
+        "injector": anomaly,
         "mode": mode,
         "severity": severity,
         "latency": LATENCY[detector],
@@ -192,3 +193,32 @@ def test_tables_render_the_realistic_fixture(results, sweep):
     headline = metrics_json(results)["matched_auroc"]
     assert len(headline) == 8
     assert all(v == round(v, 6) for v in headline.values())
+
+
+def test_false_alarm_table_sets_nominal_beside_achieved():
+    results = {
+        "records": [
+            record("a", None, "posthoc", None, "null", clean_alarm_rate=0.034,
+                   clean_episode_alarm=0.45),
+            record("b", None, "posthoc", None, "null", clean_alarm_rate=0.002,
+                   clean_episode_alarm=0.1),
+        ],
+        "thresholds": {
+            "a": {"rule": "percentile", "nominal_rate": 0.01, "per": "step"},
+            "b": {"rule": "max", "nominal_rate": 1 / 7, "per": "episode"},
+        },
+    }  # fmt: skip
+    rows = {line.split("|")[1].strip(): line for line in false_alarm_table(results).splitlines()}
+    assert [c.strip() for c in rows["a"].split("|")[2:6]] == [
+        "percentile", "1.0% of steps", "3.40%", "45%"
+    ]  # fmt: skip
+    assert [c.strip() for c in rows["b"].split("|")[2:6]] == [
+        "max", "14.3% of episodes", "0.20%", "10%"
+    ]  # fmt: skip
+
+
+def test_results_written_before_the_injector_rename_render_alike():
+    old = json.loads(json.dumps(SMALL))
+    for entry in old["records"]:
+        entry["anomaly"] = entry.pop("injector") or "null"
+    assert render_tables(old, SWEEP) == render_tables(SMALL, SWEEP)

@@ -14,6 +14,7 @@ METRICS = Registry("metric")
 for _name in (
     "adjusted_auroc",
     "clean_alarm_rate",
+    "clean_episode_alarm",
     "detection_delay",
     "f1",
     "lift_over_null",

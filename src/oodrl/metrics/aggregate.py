@@ -101,6 +101,7 @@ PAIRED_METRICS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
 #: What `null_episode_metrics` reports: the clean scores against the counterfactual labels.
 NULL_METRICS: tuple[str, ...] = (
     "clean_alarm_rate",
+    "clean_episode_alarm",
     "detection_delay",
     "f1",
     "null_auprc",
@@ -159,6 +160,11 @@ RECALL = Metric(True, lambda b, s: precision_recall_f1(b.alarms, b.labels)[1], "
 F1 = Metric(True, lambda b, s: precision_recall_f1(b.alarms, b.labels)[2], "alarm F1")
 CLEAN_ALARM_RATE = Metric(
     False, lambda b, s: alarm_rate(b.clean_alarms), "fraction of clean steps with an alarm"
+)
+CLEAN_EPISODE_ALARM = Metric(
+    False,
+    lambda b, s: b.clean_alarms.any(axis=1).astype(np.float64),
+    "1 if a clean episode has any alarm, else 0 (mean: the episode false-alarm rate)",
 )
 DETECTION_DELAY = Metric(
     False,
@@ -287,7 +293,7 @@ def null_episode_metrics(
 
     null_auroc, null_auprc, precision, recall, f1 and detection_delay (with the detector's
     `latency`) of the clean alarms against `labels` (same onset as the anomaly), and
-    clean_alarm_rate (all-zero labels).
+    clean_alarm_rate and clean_episode_alarm (all-zero labels: every alarm is false).
     """
     clean = _scores(clean, "clean", detector)
     batch = _batch(clean, clean, labels, threshold, onset, offset, latency)

@@ -42,11 +42,13 @@ EPISODE_METRICS = ("matched_auroc",)
 class ResultRecord:
     """One detector's metric summaries on one condition: an injector's anomaly at its headline
     severity (`kind` "anomaly"), or the clean evaluation set against the counterfactual labels
-    of one execution mode (`kind` "null": `anomaly` "null", `severity` None)."""
+    of one execution mode (`kind` "null": `injector` and `severity` None). Files written before
+    `injector` held the name under `anomaly` (null records: "null"); readers take either
+    (`oodrl.report.tables.record_injector`)."""
 
     kind: Literal["anomaly", "null"]
     detector: str
-    anomaly: str
+    injector: str | None
     mode: str
     severity: float | None
     latency: int
@@ -68,20 +70,51 @@ class ResultRecord:
 
 @dataclass(frozen=True)
 class Results:
-    """Every record (sorted by kind, detector, anomaly, mode), each injector's execution mode,
-    and the sweep summaries by injector, severity and detector."""
+    """Every record (sorted by kind, detector, injector, mode), each injector's execution mode,
+    the sweep summaries by injector, severity and detector, and each detector's threshold rule
+    with the false-alarm rate it promises on clean data (`nominal_false_alarms`)."""
 
     records: list[ResultRecord]
     modes: dict[str, str]
     sweep: dict[str, dict[float, dict[str, Summary]]]
+    thresholds: dict[str, dict[str, Any]]
 
     def results_document(self) -> dict[str, Any]:
         """results.yaml's content."""
-        return {"records": [record.as_dict() for record in self.records]}
+        return {
+            "records": [record.as_dict() for record in self.records],
+            "thresholds": self.thresholds,
+        }
 
     def sweep_document(self) -> dict[str, Any]:
         """sweep_results.yaml's content."""
         return {"modes": self.modes, "sweep": self.sweep}
+
+
+def nominal_false_alarms(params: Params) -> dict[str, dict[str, Any]]:
+    """Per detector: its threshold rule and the clean false-alarm rate the rule promises.
+
+    "percentile" p: a share 1 − p/100 of clean steps; "max" (the largest of n held-out clean
+    episodes' scores): an episode's maximum exceeds it with probability 1/(n + 1) when episodes
+    are exchangeable; "episode_max": at most α of clean episodes (a conformal bound). The
+    achieved rates are the null records' clean_alarm_rate and clean_episode_alarm.
+    """
+    from oodrl.protocol import fit_calibration_split
+
+    n = len(fit_calibration_split(params)[1])
+    nominal = {}
+    for name in params.benchmark.detectors:
+        detector = params.detector(name)
+        rule = detector.threshold_rule
+        if rule == "percentile":
+            rate, per = 1 - detector.threshold_percentile / 100, "step"
+        elif rule == "max":
+            rate, per = 1 / (n + 1), "episode"
+        else:
+            rate, per = detector.alpha, "episode"
+        nominal[name] = {"rule": rule, "nominal_rate": round(rate, 6), "per": per,
+                         "calibration_episodes": n}  # fmt: skip
+    return nominal
 
 
 def read_results_file(path: Path) -> Any:
@@ -151,7 +184,7 @@ def _detector_results(params: Params, scores_dir: Path, detector: str):
             )  # fmt: skip
     null = _null_summary(params, clean, threshold, detector, latency)
     records.extend(
-        ResultRecord("null", detector, "null", mode, None, latency, null)
+        ResultRecord("null", detector, None, mode, None, latency, null)
         for mode in sorted(set(modes.values()))
     )
     return records, sweep, modes
@@ -180,5 +213,5 @@ def compute_results(params: Params, scores_dir: Path) -> Results:
         modes.update(detector_modes)
         for (injector, severity), summary in detector_sweep.items():
             sweep[injector].setdefault(severity, {})[detector] = summary
-    records.sort(key=lambda r: (r.kind, r.detector, r.anomaly, r.mode))
-    return Results(records, modes, sweep)
+    records.sort(key=lambda r: (r.kind, r.detector, r.injector or "", r.mode))
+    return Results(records, modes, sweep, nominal_false_alarms(params))

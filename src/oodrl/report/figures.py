@@ -14,6 +14,7 @@ from oodrl.report.plots import (
     plot_score_traces,
     plot_severity_curves,
 )
+from oodrl.report.tables import record_injector
 from oodrl.store import read_scores
 
 
@@ -24,8 +25,8 @@ def best_detectors(results: dict[str, Any]) -> dict[str, tuple[float, str]]:
     for record in results["records"]:
         if record["kind"] == "anomaly":
             auroc = record["metrics"]["matched_auroc"]["mean"]
-            best[record["anomaly"]] = max(best.get(record["anomaly"], (-1.0, "")),
-                                          (auroc, record["detector"]))  # fmt: skip
+            injector = record_injector(record)
+            best[injector] = max(best.get(injector, (-1.0, "")), (auroc, record["detector"]))
     return best
 
 

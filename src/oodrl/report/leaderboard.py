@@ -14,6 +14,7 @@ from typing import Any
 from oodrl import yamlio
 from oodrl.fileio import atomic_write_text
 from oodrl.metrics.leaderboard import Cell, Leaderboard, leaderboard
+from oodrl.report.tables import record_injector
 
 METRIC = "matched_auroc"
 
@@ -34,7 +35,7 @@ def read_cells(results: Mapping[str, Path]) -> dict[Cell, dict[str, list[float]]
                 raise StoreError(
                     f"{path}: records lack per-episode {METRIC}; re-run {env_id}'s metrics stage."
                 )
-            cells.setdefault((env_id, record["anomaly"]), {})[record["detector"]] = episodes
+            cells.setdefault((env_id, record_injector(record)), {})[record["detector"]] = episodes
     return cells
 
 

@@ -23,6 +23,7 @@ from oodrl.report.tables import (
     anomaly_records,
     best_first,
     detector_means,
+    record_injector,
     stat,
     sweep_curves,
 )
@@ -116,7 +117,7 @@ def headline_points(results: Mapping[str, Any]) -> dict[str, dict[str, tuple[flo
         value = stat(record, "matched_auroc")
         if value is not None and record["severity"] is not None:
             point = (float(record["severity"]), value)
-            points.setdefault(record["anomaly"], {})[record["detector"]] = point
+            points.setdefault(record_injector(record), {})[record["detector"]] = point
     return points
 
 

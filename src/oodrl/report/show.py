@@ -13,7 +13,9 @@ from oodrl import yamlio
 from oodrl.errors import ConfigError, StoreError
 from oodrl.report.tables import cost_table, render_tables, sweep_tables
 
-RECORD_KEYS = frozenset({"kind", "detector", "anomaly", "mode", "severity", "metrics"})
+RECORD_KEYS = frozenset({"kind", "detector", "injector", "mode", "severity", "metrics"})
+#: `injector` was called `anomaly` in results files written before the rename.
+OLD_RECORD_KEYS = RECORD_KEYS - {"injector"} | {"anomaly"}
 
 
 def load_report(path: str | Path) -> tuple[str, dict[str, Any]]:
@@ -49,7 +51,7 @@ def load_report(path: str | Path) -> tuple[str, dict[str, Any]]:
 def _is_record(record: Any) -> bool:
     return (
         isinstance(record, Mapping)
-        and set(record) >= RECORD_KEYS
+        and (set(record) >= RECORD_KEYS or set(record) >= OLD_RECORD_KEYS)
         and isinstance(record["metrics"], Mapping)
     )
 

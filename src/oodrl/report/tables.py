@@ -31,7 +31,7 @@ LABELS = {
     "detection_delay": "detection delay",
 }
 
-AnomalyKey = tuple[str, str, Any]  # (anomaly, mode, severity)
+AnomalyKey = tuple[str, str, Any]  # (injector, mode, severity): one anomaly condition
 
 
 # ---------------------------------------------------------------------------------- record access
@@ -51,8 +51,13 @@ def stat(record: Mapping[str, Any], metric: str, field: str = "mean") -> float |
     return None if value is None else float(value)
 
 
+def record_injector(record: Mapping[str, Any]) -> str | None:
+    """The injector of a results record; files written before `injector` call it `anomaly`."""
+    return record["injector"] if "injector" in record else record.get("anomaly")
+
+
 def anomaly_key(record: Mapping[str, Any]) -> AnomalyKey:
-    return (record["anomaly"], record["mode"], record["severity"])
+    return (record_injector(record), record["mode"], record["severity"])
 
 
 def anomaly_keys(records: Iterable[Mapping[str, Any]]) -> list[AnomalyKey]:
@@ -294,6 +299,28 @@ def null_baseline_table(results: Mapping[str, Any]) -> str:
     return markdown_table(header, rows)
 
 
+def false_alarm_table(results: Mapping[str, Any]) -> str:
+    """Per detector: its threshold rule's nominal clean false-alarm rate and the rates achieved
+    on the clean evaluation episodes (share of steps; share of episodes with any alarm)."""
+    thresholds = results.get("thresholds") or {}
+    records = null_records(results)
+    rows = []
+    for d in detectors(records):
+        record = next(r for r in records if r["detector"] == d)  # every mode: the same scores
+        rule = thresholds.get(d, {})
+        nominal = "—"
+        if "nominal_rate" in rule:
+            nominal = f"{100 * rule['nominal_rate']:.1f}% of {rule['per']}s"
+        step, episode = stat(record, "clean_alarm_rate"), stat(record, "clean_episode_alarm")
+        rows.append([
+            d, rule.get("rule", "—"), nominal,
+            "—" if step is None else f"{100 * step:.2f}%",
+            "—" if episode is None else f"{100 * episode:.0f}%",
+        ])  # fmt: skip
+    header = ["detector", "threshold rule", "nominal", "achieved: steps", "achieved: episodes"]
+    return markdown_table(header, rows)
+
+
 def sweep_tables(sweep: Mapping[str, Any], metric: str = "matched_auroc") -> str:
     """One table per injector: `metric` per detector × severity."""
     modes = sweep.get("modes", {})
@@ -374,6 +401,11 @@ def render_tables(results: Mapping[str, Any], sweep: Mapping[str, Any] | None = 
         best_auroc_versus_best_table(results, "matched_fpr95", "FPR95", 3),
         "## Null baseline (clean evaluation trajectories, counterfactual labels)",
         null_baseline_table(results),
+        "## False alarms on the clean evaluation set",
+        "What each detector's threshold rule promises on clean data (calibrated on the "
+        "held-out ID episodes) against what it does: the share of clean steps that alarm and "
+        "the share of clean episodes with any alarm (docs/SPEC.md §13).",
+        false_alarm_table(results),
     ]
     text = "\n\n".join(sections) + "\n"
     return text + "\n" + sweep_tables(sweep) if sweep else text
