@@ -66,3 +66,20 @@ def run_meta(
         "policy_sha256": hashlib.sha256(Path(policy_path).read_bytes()).hexdigest(),
         "cost": cost,
     }
+
+
+def write_run_meta(
+    params: Params, policy_path: Path, models_dir: Path, eval_path: Path, timings_dir: Path,
+    meta_path: Path,
+) -> None:  # fmt: skip
+    """run_meta.yaml: provenance, stage timings, and every benchmark detector's cost (§13)."""
+    from oodrl import yamlio
+    from oodrl.cost import detector_costs
+    from oodrl.fileio import atomic_write_text
+    from oodrl.store import read_trajectories
+
+    records = timing_records(timings_dir)
+    models = {name: models_dir / f"{name}.pkl" for name in params.benchmark.detectors}
+    clean = read_trajectories(eval_path, stage="collect_eval").trajectories()
+    cost = detector_costs(models, clean, fit_seconds(records))
+    atomic_write_text(meta_path, yamlio.dump(run_meta(params, policy_path, records, cost)))

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from oodrl import yamlio
 from oodrl.config import Params
 from oodrl.fileio import atomic_write_text
 from oodrl.stages.common import TIMINGS_DIR
@@ -23,20 +22,14 @@ def run_render(
     headline_path: Path,
     meta_path: Path,
 ) -> None:
-    from oodrl.cost import detector_costs
     from oodrl.metrics.results import read_results_file
     from oodrl.report.figures import write_figures
     from oodrl.report.plots import write_dvc_plot_data
-    from oodrl.report.provenance import fit_seconds, run_meta, timing_records
+    from oodrl.report.provenance import write_run_meta
     from oodrl.report.tables import headline_table
-    from oodrl.store import read_trajectories
 
     results, sweep = read_results_file(results_path), read_results_file(sweep_path)
     write_figures(params, results, sweep, scores_dir, figures_dir)
     write_dvc_plot_data(results, sweep, plots_dir)
     atomic_write_text(headline_path, headline_table(results))
-    records = timing_records(TIMINGS_DIR)
-    models = {name: models_dir / f"{name}.pkl" for name in params.benchmark.detectors}
-    clean = read_trajectories(eval_path, stage="collect_eval").trajectories()
-    cost = detector_costs(models, clean, fit_seconds(records))
-    atomic_write_text(meta_path, yamlio.dump(run_meta(params, policy_path, records, cost)))
+    write_run_meta(params, policy_path, models_dir, eval_path, TIMINGS_DIR, meta_path)
