@@ -16,6 +16,7 @@ import pytest
 
 from oodrl import yamlio
 from oodrl.config import merge_params, parse_params, read_params_data
+from oodrl.layout import score_store, sweep_score_store
 from oodrl.metrics.results import compute_results
 from oodrl.stages import collect, fit, score
 from oodrl.suite import PIPELINE_DIRS, policy_path
@@ -81,10 +82,11 @@ def test_the_protocol_runs_on_every_environment(env_id, tmp_path: Path):
         fit.fit_detector(params, detector, tmp_path / "id.zarr", model)
         score.score_clean(detector, model, tmp_path / "eval.zarr", scores / detector / "eval.zarr")
         for injector in params.benchmark.injectors:
-            stores = [tmp_path / kind / f"{injector}.zarr" for kind in ("ood", "sweep")]
-            score.score_injector(
-                detector, injector, model, *stores, scores / detector / f"{injector}.zarr"
-            )
+            headline, sweep = (tmp_path / kind / f"{injector}.zarr" for kind in ("ood", "sweep"))
+            out = score_store(scores, detector, injector)
+            score.score_headline(detector, injector, model, headline, out)
+            out = sweep_score_store(scores, detector, injector)
+            score.score_sweep(detector, injector, model, sweep, out)
     results = compute_results(params, scores)
     records = [r for r in results.records if r.kind == "anomaly"]
     assert len(records) == 8 * 9
