@@ -28,7 +28,7 @@ import itertools
 import os
 import re
 import shlex
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -577,7 +577,7 @@ def pipeline_files(pipeline_dir: Path, root: Path) -> dict[Path, str]:
     return files
 
 
-def _stale_files(pipeline_dir: Path, files: dict[Path, str]) -> list[Path]:
+def _stale_files(pipeline_dir: Path, files: Mapping[Path, str]) -> list[Path]:
     """Generated detector files of detectors no longer in the benchmark."""
     from oodrl.layout import DETECTOR_PIPELINES
 
@@ -596,14 +596,15 @@ def write(root: Path) -> list[Path]:
     """Write every pipeline's DVC files from the template; the files that changed or went.
 
     A detector dropped from the benchmark loses its DVC file and lock (git keeps both)."""
+    generated = dict(_generated(root))
     changed = []
-    for path, text in _generated(root):
+    for path, text in generated.items():
         if not path.is_file() or path.read_text() != text:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(text)
             changed.append(path)
     for directory in pipeline_dirs(root):
-        for stale in _stale_files(directory, pipeline_files(directory, root)):
+        for stale in _stale_files(directory, generated):
             for path in (stale, stale.with_suffix(".lock")):
                 path.unlink(missing_ok=True)
             changed.append(stale)
