@@ -2,8 +2,7 @@
 
 from __future__ import annotations
 
-import hashlib
-import shutil
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -20,24 +19,30 @@ from oodrl.store import (
 )
 
 
-def tree_digest(root: Path) -> str:
-    digest = hashlib.sha256()
-    for path in sorted(p for p in root.rglob("*") if p.is_file()):
-        digest.update(str(path.relative_to(root)).encode())
-        digest.update(path.read_bytes())
-    return digest.hexdigest()
+def rewrite_entries(path: Path, edit) -> None:
+    """Rewrite the store's ZIP with `edit(name, data)` -> new data, or None to drop the entry."""
+    with zipfile.ZipFile(path) as archive:
+        entries = [(info, archive.read(info)) for info in archive.infolist()]
+    with zipfile.ZipFile(path, "w") as archive:
+        for info, data in entries:
+            data = edit(info.filename, data)
+            if data is not None:
+                archive.writestr(info, data)
 
 
 def test_round_trip_and_byte_identical(tmp_path, heuristic_clean):
     tset = heuristic_clean
     write_trajectories(tmp_path / "a.zarr", tset)
     write_trajectories(tmp_path / "b.zarr", tset)
-    assert tree_digest(tmp_path / "a.zarr") == tree_digest(tmp_path / "b.zarr")
+    assert (tmp_path / "a.zarr").read_bytes() == (tmp_path / "b.zarr").read_bytes()
     back = read_trajectories(tmp_path / "a.zarr")
     for name in ("states", "actions", "rewards", "next_states", "dones", "seeds"):
         np.testing.assert_array_equal(getattr(back, name), getattr(tset, name))
-    files = [p for p in (tmp_path / "a.zarr").rglob("*") if p.is_file()]
-    assert len(files) <= 20, "sharded: a handful of files, not one per episode"
+    assert (tmp_path / "a.zarr").is_file(), "one file per store: one DVC file-state lookup"
+    with zipfile.ZipFile(tmp_path / "a.zarr") as archive:
+        entries = archive.infolist()
+    assert len(entries) <= 20, "sharded: a handful of entries, not one per episode"
+    assert {e.date_time for e in entries} == {(1980, 1, 1, 0, 0, 0)}, "no write time inside"
     assert not list(tmp_path.glob(".*tmp*")), "no temporary path left behind"
 
 
@@ -59,7 +64,8 @@ def test_attributes_are_sorted_and_host_free(tmp_path, heuristic_clean):
         attrs={"zeta": 1, "alpha": {"b": 2, "a": 1}},
     )
     write_trajectories(tmp_path / "s.zarr", tset)
-    text = (tmp_path / "s.zarr" / "zarr.json").read_text()
+    with zipfile.ZipFile(tmp_path / "s.zarr") as archive:
+        text = archive.read("zarr.json").decode()
     assert text.index('"alpha"') < text.index('"zeta"')
     assert str(tmp_path) not in text
 
@@ -83,7 +89,7 @@ def test_missing_store_names_the_stage(tmp_path):
 def test_truncated_store_is_detected(tmp_path, heuristic_clean):
     path = tmp_path / "t.zarr"
     write_trajectories(path, heuristic_clean)
-    shutil.rmtree(path / "states" / "c")
+    rewrite_entries(path, lambda name, data: None if name.startswith("states/c") else data)
     with pytest.raises(StoreError, match=r"'/?states' is truncated or corrupt.*dvc repro -s -f x"):
         read_trajectories(path, stage="x")
 
@@ -91,10 +97,15 @@ def test_truncated_store_is_detected(tmp_path, heuristic_clean):
 def test_corrupt_bytes_are_detected(tmp_path, heuristic_clean):
     path = tmp_path / "t.zarr"
     write_trajectories(path, heuristic_clean)
-    shard = next(p for p in (path / "rewards" / "c").rglob("*") if p.is_file())
-    data = bytearray(shard.read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    shard.write_bytes(bytes(data))
+
+    def flip_a_byte(name, data):
+        if not name.startswith("rewards/c"):
+            return data
+        data = bytearray(data)
+        data[len(data) // 2] ^= 0xFF
+        return bytes(data)
+
+    rewrite_entries(path, flip_a_byte)
     with pytest.raises(StoreError, match="rewards"):
         read_trajectories(path, stage="x")
 
@@ -103,7 +114,26 @@ def test_foreign_store_is_refused(tmp_path, heuristic_clean):
     write_sweep(tmp_path / "sw.zarr", {0.1: heuristic_clean}, {})
     with pytest.raises(StoreError, match="not an oodrl-trajectories store"):
         read_trajectories(tmp_path / "sw.zarr")
-    (tmp_path / "junk.zarr").mkdir()
-    (tmp_path / "junk.zarr" / "zarr.json").write_text("{not json")
-    with pytest.raises(StoreError, match="junk.zarr"):
+    (tmp_path / "junk.zarr").write_text("{not a zip")
+    with pytest.raises(StoreError, match="junk.zarr: unreadable store"):
         read_trajectories(tmp_path / "junk.zarr")
+
+
+def test_truncated_file_and_old_directory_stores_are_refused(tmp_path, heuristic_clean):
+    path = tmp_path / "t.zarr"
+    write_trajectories(path, heuristic_clean)
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(StoreError, match=r"t.zarr: unreadable store.*dvc repro -s -f x"):
+        read_trajectories(path, stage="x")
+    (tmp_path / "old.zarr").mkdir()
+    (tmp_path / "old.zarr" / "zarr.json").write_text("{}")
+    with pytest.raises(StoreError, match=r"old.zarr: a directory store from an older oodrl"):
+        read_trajectories(tmp_path / "old.zarr", stage="x")
+
+
+def test_rewrite_replaces_an_old_directory_store(tmp_path, heuristic_clean):
+    path = tmp_path / "t.zarr"
+    (path / "states").mkdir(parents=True)
+    write_trajectories(path, heuristic_clean)
+    assert path.is_file()
+    np.testing.assert_array_equal(read_trajectories(path).states, heuristic_clean.states)

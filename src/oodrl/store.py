@@ -1,10 +1,17 @@
 """Zarr v3 stores of trajectory sets and score arrays (SPEC §9).
 
+Each store is one file: a Zarr v3 hierarchy packed in an uncompressed ZIP archive (zarr's
+`ZipStore` reads it; open one with `zarr.open_group(zarr.storage.ZipStore(path, mode="r"))`).
+A directory store has a few directories and files per array, and DVC walks every one of them
+for every stage that reads or writes the store, on every `dvc repro`, `dvc status` and
+`dvc exp run`: one file per store is one file-state lookup.
+
 Every store is written to a temporary sibling path and renamed into place, so a killed
-stage never leaves a half-written store. Arrays are sharded (one file per array), zstd
+stage never leaves a half-written store. Arrays are sharded (one ZIP entry per array), zstd
 compressed, and every array's SHA-256 is recorded in the group attributes: a truncated or
 tampered store is detected on read instead of silently yielding fill values. Nothing
-time- or host-dependent is written, so the same data gives byte-identical stores.
+time- or host-dependent is written (ZIP entries in sorted order with a fixed date), so the
+same data gives byte-identical stores.
 """
 
 from __future__ import annotations
@@ -13,6 +20,7 @@ import hashlib
 import json
 import os
 import shutil
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -70,26 +78,53 @@ def _write_arrays(group, arrays: Mapping[str, np.ndarray], attrs: Mapping[str, A
 
 
 def write_store(path: Path, groups: Mapping[str, tuple[Mapping[str, np.ndarray], Mapping]]) -> None:
-    """Write `{group path ('' = root): (arrays, attrs)}` atomically to `path`."""
+    """Write `{group path ('' = root): (arrays, attrs)}` atomically to the file `path`."""
     import zarr
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     # Temporary siblings left by a killed earlier run are removed first.
     for stale in path.parent.glob(f".{path.name}.tmp-*"):
-        shutil.rmtree(stale, ignore_errors=True)
+        _remove(stale)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    packed = path.with_name(f"{tmp.name}.zip")
     try:
         root = zarr.open_group(str(tmp), mode="w", zarr_format=3)
         for name in sorted(groups):
             arrays, attrs = groups[name]
             group = root if name == "" else root.require_group(name)
             _write_arrays(group, arrays, attrs)
-        if path.exists():
+        _pack(tmp, packed)
+        if path.is_dir():  # a directory store written by an earlier version
             shutil.rmtree(path)
-        os.replace(tmp, path)
+        os.replace(packed, path)
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        _remove(tmp)
+        _remove(packed)
+
+
+# A fixed date and mode: ZipFile would stamp each entry with the time it was written.
+_ENTRY_DATE = (1980, 1, 1, 0, 0, 0)
+_ENTRY_MODE = 0o100644 << 16
+_UNIX = 3
+
+
+def _pack(directory: Path, archive: Path) -> None:
+    """The files under `directory` as an uncompressed ZIP whose bytes depend on them only."""
+    names = sorted(p.relative_to(directory).as_posix() for p in directory.rglob("*") if p.is_file())
+    with zipfile.ZipFile(archive, "w", compression=zipfile.ZIP_STORED) as out:
+        for name in names:
+            entry = zipfile.ZipInfo(name, _ENTRY_DATE)
+            entry.external_attr = _ENTRY_MODE
+            entry.create_system = _UNIX
+            out.writestr(entry, (directory / name).read_bytes())
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
 
 
 def rerun_hint(stage: str | None) -> str:
@@ -115,21 +150,30 @@ def stage_address(stage: str) -> str:
 
 
 def _open_group(path: Path, expected_format: str, stage: str | None):
+    """The root group and the open ZipStore (close it once the arrays are read)."""
     import zarr
+    from zarr.storage import ZipStore
 
     path = Path(path)
-    if not (path / "zarr.json").is_file():
-        raise StoreError(f"{path}: store is missing or incomplete; {rerun_hint(stage)}.")
+    if path.is_dir():
+        raise StoreError(
+            f"{path}: a directory store from an older oodrl (stores are now single ZIP "
+            f"files); {rerun_hint(stage)}."
+        )
+    if not path.is_file():
+        raise StoreError(f"{path}: store is missing; {rerun_hint(stage)}.")
     try:
-        root = zarr.open_group(str(path), mode="r", zarr_format=3)
+        store = ZipStore(path, mode="r")
+        root = zarr.open_group(store, mode="r", zarr_format=3)
         found = root.attrs.get("format")
-    except Exception as error:  # zarr raises many kinds on damaged metadata
+    except Exception as error:  # zipfile and zarr raise many kinds on damaged files
         raise StoreError(f"{path}: unreadable store ({error}); {rerun_hint(stage)}.") from None
     if found != expected_format:
+        store.close()
         raise StoreError(
             f"{path}: not an {expected_format} store (format {found!r}); {rerun_hint(stage)}."
         )
-    return root
+    return root, store
 
 
 def _read_arrays(group, path: Path, stage: str | None) -> dict[str, np.ndarray]:
@@ -155,14 +199,20 @@ def read_store(
     path: Path, expected_format: str, stage: str | None = None
 ) -> dict[str, tuple[dict[str, np.ndarray], dict]]:
     """Read every group of a store written by `write_store`, verifying checksums."""
-    root = _open_group(path, expected_format, stage)
-    groups = {"": root}
-    for name, group in root.groups():
-        groups[name] = group
-    return {
-        name: (_read_arrays(group, Path(path), stage), json.loads(json.dumps(dict(group.attrs))))
-        for name, group in sorted(groups.items())
-    }
+    root, store = _open_group(path, expected_format, stage)
+    try:
+        groups = {"": root}
+        for name, group in root.groups():
+            groups[name] = group
+        return {
+            name: (
+                _read_arrays(group, Path(path), stage),
+                json.loads(json.dumps(dict(group.attrs))),
+            )
+            for name, group in sorted(groups.items())
+        }
+    finally:
+        store.close()
 
 
 # -- trajectory sets ---------------------------------------------------------------------------

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 import signal
 import subprocess
 import sys
@@ -72,7 +71,7 @@ def test_killed_stage_leaves_no_half_written_output_and_next_repro_completes(rep
     """Kill collect_id while it writes its store: no store at the output path, then repro."""
     edit_params(repo, lambda p: p["data"].update(n_id=64))
     store = repo / "data" / "id.zarr"
-    shutil.rmtree(store)  # as DVC does before it runs a stage
+    store.unlink()  # as DVC does before it runs a stage
     process = subprocess.Popen(
         [sys.executable, "-m", "oodrl", "collect-id", "--policy", "models/policy.pt",
          "--out", "data/id.zarr"],
@@ -92,8 +91,8 @@ def test_killed_stage_leaves_no_half_written_output_and_next_repro_completes(rep
 
 
 def test_corrupt_store_and_pickle_give_clear_errors(repo):
-    shard = next(p for p in (repo / "data/eval.zarr/states/c").rglob("*") if p.is_file())
-    shard.write_bytes(shard.read_bytes()[:10])
+    store = repo / "data/eval.zarr"
+    store.write_bytes(store.read_bytes()[: store.stat().st_size // 2])
     done = run(repo, "oodrl", "score", "kde_density", "--model",
                "models/detectors/kde_density.pkl", "--eval", "data/eval.zarr", "--out",
                "scores/x.zarr", check=False)  # fmt: skip
