@@ -68,7 +68,7 @@ def fit_set():
 
 def run():
     if workload.endswith("_score"):
-        from oodrl.stages.common import load_detector
+        from oodrl.store import load_detector
 
         name = {"kde": "kde_density", "time_series": "time_series_features", "pedm": "pedm",
                 "ensemble": "ensemble_disagreement"}[workload[: -len("_score")]]

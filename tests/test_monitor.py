@@ -19,7 +19,7 @@ from oodrl.envs.collect import collect
 from oodrl.errors import NotFittedError
 from oodrl.monitor import FaultInjection, OodMonitor, live_fault, run_monitor
 from oodrl.policies.load import load_policy
-from oodrl.stages.common import save_detector
+from oodrl.store import save_detector
 from oodrl.suite import policy_path
 
 ROOT = Path(__file__).resolve().parents[1]

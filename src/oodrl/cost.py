@@ -86,11 +86,8 @@ def detector_costs(
     """detector -> {fit_s, fitted_bytes, step_us_median, step_us_p99} for each pickle written by
     `oodrl fit` in `models` (name -> path); `fit_s` is None where `fit_seconds` lacks it."""
     from oodrl.layout import detector_stage
-    from oodrl.registry import add_project_dir_to_path
-    from oodrl.stages.common import load_detector
+    from oodrl.store import load_detector
 
-    # A plugin detector's pickle names its module beside params.yaml (as the score stage does).
-    add_project_dir_to_path()
     streams = timed_streams(trajectories)
     costs = {}
     for name, path in models.items():

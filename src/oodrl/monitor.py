@@ -49,7 +49,7 @@ AlarmCallback = Callable[[StepScore], None]
 def as_detector(detector: BaseDetector | str | Path) -> BaseDetector:
     """A fitted, calibrated detector, or the one pickled at a path by `oodrl fit`."""
     if isinstance(detector, str | Path):
-        from oodrl.stages.common import load_detector
+        from oodrl.store import load_detector
 
         detector = load_detector(Path(detector), stage="fit")
     if getattr(detector, "threshold_", None) is None:

@@ -1,4 +1,4 @@
-"""Zarr v3 stores of trajectory sets and score arrays (SPEC §9).
+"""Zarr v3 stores of trajectory sets and score arrays, and fitted-detector files (SPEC §9).
 
 Each store is one file: a Zarr v3 hierarchy packed in an uncompressed ZIP archive (zarr's
 `ZipStore` reads it; open one with `zarr.open_group(zarr.storage.ZipStore(path, mode="r"))`).
@@ -19,7 +19,9 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import pickle
 import shutil
+import warnings
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -33,6 +35,7 @@ from oodrl.errors import StoreError
 TRAJECTORY_FORMAT = "oodrl-trajectories"
 SWEEP_FORMAT = "oodrl-sweep"
 SCORES_FORMAT = "oodrl-scores"
+DETECTOR_FORMAT = "oodrl-detector"
 FORMAT_VERSION = 1
 
 _SET_ARRAYS = (*STEP_FIELDS, "episode_index", "seeds", "labels")
@@ -278,3 +281,48 @@ def read_scores(
     groups = read_store(path, SCORES_FORMAT, stage)
     root_attrs = {k: v for k, v in groups[""][1].items() if k not in ("checksums",)}
     return {name: arrays for name, (arrays, _) in groups.items() if name}, root_attrs
+
+
+# -- fitted detectors --------------------------------------------------------------------------
+def save_detector(path: Path, detector, name: str, params: Mapping[str, Any]) -> None:
+    """Pickle a fitted detector with the versions and params that made it."""
+    from oodrl.fileio import atomic_write_bytes, library_versions
+
+    record = {
+        "format": DETECTOR_FORMAT,
+        "name": name,
+        "params": dict(params),
+        "versions": library_versions(),
+        "detector": detector,
+    }
+    atomic_write_bytes(path, pickle.dumps(record, protocol=5))
+
+
+def load_detector(path: Path, stage: str | None):
+    """Load a pickle written by `save_detector` (only ever from the pipeline's own paths).
+
+    A plugin detector's pickle names its module beside params.yaml, which the `oodrl` command
+    finds only with the project directory on sys.path, so it is added first.
+    """
+    from oodrl.fileio import library_versions
+    from oodrl.registry import add_project_dir_to_path
+
+    path = Path(path)
+    hint = rerun_hint(stage)
+    if not path.is_file():
+        raise StoreError(f"{path}: fitted detector is missing; {hint}.")
+    add_project_dir_to_path()
+    try:
+        record = pickle.loads(path.read_bytes())
+    except Exception as error:  # any unpickling failure means a corrupt or foreign file
+        raise StoreError(f"{path}: not a readable oodrl detector ({error}); {hint}.") from None
+    if not isinstance(record, dict) or record.get("format") != DETECTOR_FORMAT:
+        raise StoreError(f"{path}: not an oodrl detector file; {hint}.")
+    saved, current = record["versions"], library_versions()
+    changed = [f"{k} {saved[k]} -> {current.get(k)}" for k in saved if saved[k] != current.get(k)]
+    if changed:
+        warnings.warn(
+            f"{path} was written with other versions ({', '.join(changed)}); {hint} to refit.",
+            stacklevel=2,
+        )
+    return record["detector"]

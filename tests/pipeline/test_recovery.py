@@ -14,9 +14,8 @@ from conftest import DETECTORS, INJECTORS, POLICY_FILES, edit_params
 from oodrl.errors import OodrlError
 from oodrl.layout import detector_stage
 from oodrl.metrics.results import read_results_file
-from oodrl.stages.common import load_detector
 from oodrl.stages.train import RETRAIN_COMMAND
-from oodrl.store import read_trajectories, rerun_hint
+from oodrl.store import load_detector, read_trajectories, rerun_hint
 from oodrl.testing.pipeline import repro, run
 
 pytestmark = pytest.mark.slow

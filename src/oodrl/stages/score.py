@@ -8,15 +8,10 @@ from pathlib import Path
 
 from oodrl import scoring
 from oodrl.layout import detector_stage
-from oodrl.registry import add_project_dir_to_path
-from oodrl.stages.common import load_detector
-from oodrl.store import read_sweep, read_trajectories, write_scores
+from oodrl.store import load_detector, read_sweep, read_trajectories, write_scores
 
 
 def _fitted(detector_path: Path, name: str):
-    """The fitted detector; a plugin's pickle refers to its module beside params.yaml, which
-    the `oodrl` command finds only with the project directory on sys.path."""
-    add_project_dir_to_path()
     return load_detector(detector_path, stage=detector_stage(name, "fit"))
 
 
