@@ -8,6 +8,7 @@ import yaml
 from oodrl.config import read_params_data
 from oodrl.errors import RegistryError
 from oodrl.registry import Registry, add_project_dir_to_path, import_path
+from oodrl.store import load_detector, save_detector
 
 
 def test_lazy_registry_resolves_and_suggests():
@@ -89,6 +90,21 @@ def test_module_class_path_imports_from_the_project_directory(project_dir):
     assert cls.name == "constant"
     # The project directory stays importable: unpickling a fitted plugin detector needs it.
     assert str(project_dir) in sys.path
+
+
+def test_a_plugin_detectors_pickle_loads_from_the_project_directory(project_dir, monkeypatch):
+    """load_detector (score stages, cost measurement, monitor) finds the module of a pickled
+    plugin detector beside params.yaml, with the project directory not on sys.path."""
+    package = project_dir / "oodrl_project_plugin"
+    package.mkdir()
+    (package / "detectors.py").write_text(PROJECT_MODULE)
+    cls = Registry("detector").get("oodrl_project_plugin.detectors:Constant")
+    save_detector(project_dir / "constant.pkl", cls(), "constant", {})
+    for name in [n for n in sys.modules if n.startswith("oodrl_project_plugin")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p != str(project_dir)])
+    detector = load_detector(project_dir / "constant.pkl", stage="fit")
+    assert type(detector).__module__ == "oodrl_project_plugin.detectors"
 
 
 def test_add_project_dir_to_path_appends_it_once(project_dir):
