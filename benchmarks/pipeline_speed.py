@@ -39,6 +39,7 @@ for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 
 import yaml  # noqa: E402
 
+from oodrl.layout import DETECTOR_PIPELINES  # noqa: E402
 from oodrl.testing.pipeline import copy_project, repro, run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -134,7 +135,9 @@ def knob_runs(repo: Path) -> dict[str, tuple[float, int]]:
     figures["headline severity, plain dvc repro"] = (seconds, len(ran))
     start = time.perf_counter()
     # Targets: the root's DVC files (DVC refuses to save pipelines whose outputs are missing).
-    detector_files = sorted(str(f.relative_to(repo)) for f in repo.glob("detectors/*/dvc.yaml"))
+    detector_files = sorted(
+        str(f.relative_to(repo)) for f in repo.glob(f"{DETECTOR_PIPELINES}/*/dvc.yaml")
+    )
     run(repo, "dvc", "exp", "save", "-n", "severity-0.6", "dvc.yaml", *detector_files)
     figures["then dvc exp save"] = (time.perf_counter() - start, 0)
     return figures
