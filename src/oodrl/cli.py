@@ -38,6 +38,26 @@ def _fail(error: OodrlError) -> None:
     raise typer.Exit(2 if isinstance(error, ConfigError) else 1)
 
 
+def _print_version(requested: bool) -> None:
+    if requested:
+        from importlib.metadata import version
+
+        typer.echo(f"oodrl {version('oodrl')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    version: Annotated[
+        bool,
+        typer.Option(
+            "--version", callback=_print_version, is_eager=True, help="print the version and exit"
+        ),
+    ] = False,
+) -> None:
+    """oodrl: which OOD detector notices which fault in an RL agent's trajectory."""
+
+
 pipeline_app = typer.Typer(
     no_args_is_help=True,
     help="The DVC pipelines (root and pipeline/<env>/), generated from one template.",
