@@ -7,7 +7,7 @@
 
 Each `step` feeds the transition (the observation the action was chosen on, the action as the
 agent commanded it, the reward, the new observation, terminated or truncated) to the detector's
-stream (`oodrl.streaming`) and adds to `info`:
+stream (`oodrl.core.stream`) and adds to `info`:
 
 - ``"ood_scores"``: the `StepScore` records that became known with this step, usually one, the
   step's own score (a look-ahead detector's comes later; at an episode end, the rest come);
@@ -39,8 +39,8 @@ from oodrl.core.adapter import EnvironmentAdapter, SimulatorHandle
 from oodrl.core.detector import BaseDetector
 from oodrl.core.injector import Fault
 from oodrl.core.spec import default_onset
+from oodrl.core.stream import StepScore
 from oodrl.errors import NotFittedError
-from oodrl.streaming import StepScore
 
 #: `on_alarm(record)`: called once for every alarmed step score.
 AlarmCallback = Callable[[StepScore], None]

@@ -8,8 +8,8 @@ import pytest
 from test_contract import NAMES, SPLITS, by_name_and_actions, fitted
 
 from oodrl.core.detector import BaseDetector
+from oodrl.core.stream import ReplayStream, RowStream
 from oodrl.detectors import DETECTORS
-from oodrl.streaming import ReplayStream, RowStream
 from oodrl.testing import check_streaming, linear_system_trajectories
 
 

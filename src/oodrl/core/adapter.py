@@ -17,18 +17,15 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from functools import cached_property
-from typing import TYPE_CHECKING, Any, ClassVar, Literal
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 
+from oodrl.core.policy import ActionKind, Policy
 from oodrl.errors import ContractError, PolicyError
 
 if TYPE_CHECKING:
     import gymnasium as gym
-
-    from oodrl.core.policy import Policy
-
-ActionKind = Literal["discrete", "continuous"]
 
 
 class SimulatorHandle(ABC):

@@ -4,7 +4,7 @@ Score direction: a larger score means more anomalous, for every detector.
 Subclasses implement `_fit` and one of `_score` (one trajectory) or `_score_many` (a batch);
 the base class owns `fit`, `calibrate`, `score`, the threshold rules and the alarms,
 so no detector can forget its threshold or mutate itself while scoring. `stream()` scores one
-step at a time (`oodrl.streaming`); a detector overrides it for constant work per step.
+step at a time (`oodrl.core.stream`); a detector overrides it for constant work per step.
 
 Threshold rules (`threshold_rule`), from the scores of held-out clean trajectories:
 
@@ -31,16 +31,14 @@ from abc import abstractmethod
 from collections.abc import Sequence
 from dataclasses import dataclass
 from fractions import Fraction
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
+from oodrl.core.stream import DetectorStream, ReplayStream, RowStream
 from oodrl.core.trajectory import Trajectory
 from oodrl.errors import ConfigError, ContractError, DetectorError, NotFittedError
 from oodrl.validation import Component, Interval, Options
-
-if TYPE_CHECKING:
-    from oodrl.streaming import DetectorStream
 
 THRESHOLD_RULES = ("percentile", "max", "episode_max")
 
@@ -193,10 +191,8 @@ class BaseDetector(Component):
 
         A `row_independent` detector scores each step on its own; otherwise this default
         re-scores the stream so far at every step (exact when z_t reads no step after
-        t + latency, but not constant work), and a detector overrides it (`oodrl.streaming`).
+        t + latency, but not constant work), and a detector overrides it (`oodrl.core.stream`).
         """
-        from oodrl.streaming import ReplayStream, RowStream
-
         return RowStream(self) if self.row_independent else ReplayStream(self)
 
     def score(self, trajectory: Trajectory) -> DetectorOutput:

@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Protocol
+from typing import Literal, Protocol
 
 import numpy as np
 
-from oodrl.core.adapter import ActionKind
+#: How a policy acts: an index into a finite set, or a real vector.
+ActionKind = Literal["discrete", "continuous"]
 
 
 class Policy(Protocol):

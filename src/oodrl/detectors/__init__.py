@@ -9,7 +9,7 @@ Besides its own parameters (see each class), every detector takes `threshold_rul
 the probability of any false alarm in a clean trajectory; default "percentile", `pedm` "max";
 see `oodrl.core.detector`), `threshold_percentile` (default 99.0), `alpha` (default 0.05) and
 `seed` (default 0; weights, data order, subsamples). `detector.stream()` scores step by step
-(`oodrl.streaming`).
+(`oodrl.core.stream`).
 """
 
 from oodrl.registry import Registry

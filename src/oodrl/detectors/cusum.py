@@ -33,6 +33,7 @@ import numpy as np
 
 from oodrl import numerics
 from oodrl.core.detector import BaseDetector, detector_parameters
+from oodrl.core.stream import DetectorStream, StepScores
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import (
     ActionEncoding,
@@ -42,7 +43,6 @@ from oodrl.detectors.features import (
     stacked,
     stacked_features,
 )
-from oodrl.streaming import DetectorStream, StepScores
 from oodrl.validation import Interval, IsType, Options
 
 RESIDUALS = ("transition", "state")

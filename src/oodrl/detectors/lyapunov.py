@@ -34,10 +34,10 @@ import numpy as np
 
 from oodrl import numerics
 from oodrl.core.detector import BaseDetector, detector_parameters
+from oodrl.core.stream import DetectorStream, StepScores
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import Standardizer, seeded_subsample, split_scores
 from oodrl.errors import ContractError
-from oodrl.streaming import DetectorStream, StepScores
 from oodrl.validation import Interval
 
 

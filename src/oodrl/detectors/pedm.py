@@ -29,11 +29,11 @@ import numpy as np
 
 from oodrl import numerics
 from oodrl.core.detector import detector_parameters
+from oodrl.core.stream import DetectorStream, StepScores
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import increments, split_scores, stacked
 from oodrl.detectors.mlp import gaussian_mean_and_logvar
 from oodrl.detectors.neural import TransitionEnsemble, chunked_scores
-from oodrl.streaming import DetectorStream, StepScores
 from oodrl.validation import Interval
 
 

@@ -34,10 +34,10 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from oodrl import numerics
 from oodrl.core.detector import BaseDetector, detector_parameters
+from oodrl.core.stream import DetectorStream, StepScores
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors.features import GaussianModel, Standardizer, stacked
 from oodrl.errors import ContractError
-from oodrl.streaming import DetectorStream, StepScores
 from oodrl.validation import Interval, Options
 
 DISTANCES = ("mahalanobis", "robust_z")

@@ -29,14 +29,11 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from oodrl.core.trajectory import Trajectory
-
-if TYPE_CHECKING:
-    from oodrl.core.detector import BaseDetector
 
 #: What `update` and `flush` return: the newly known scores, in step order.
 StepScores = tuple["StepScore", ...]
@@ -76,10 +73,26 @@ def concatenated(steps: list[Trajectory]) -> Trajectory:
     )
 
 
+class StreamedDetector(Protocol):
+    """What a stream needs of its detector (`oodrl.core.detector.BaseDetector` provides it).
+
+    Stated here so that this contract imports nothing of the detector's: the detector module
+    imports this one, never the other way round.
+    """
+
+    latency: int
+
+    def _require_fitted(self) -> None: ...
+
+    def _require_state_dim(self, trajectory: Trajectory) -> None: ...
+
+    def _score_many(self, trajectories: list[Trajectory]) -> list[np.ndarray]: ...
+
+
 class DetectorStream(ABC):
     """The streaming scorer of one fitted detector; see the module docstring."""
 
-    def __init__(self, detector: BaseDetector) -> None:
+    def __init__(self, detector: StreamedDetector) -> None:
         detector._require_fitted()
         self.detector = detector
         self.threshold: float | None = getattr(detector, "threshold_", None)
@@ -142,7 +155,7 @@ class ReplayStream(DetectorStream):
     deployment overrides `stream()`.
     """
 
-    def __init__(self, detector: BaseDetector) -> None:
+    def __init__(self, detector: StreamedDetector) -> None:
         super().__init__(detector)
         self.steps: list[Trajectory] = []
 
