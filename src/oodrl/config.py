@@ -350,11 +350,13 @@ def merge_params(base: Any, override: Any, at: tuple[str, ...] = ()) -> Any:
 def _read_yaml(path: Path, named_by: str = "") -> Any:
     import yaml
 
+    from oodrl import yamlio
+
     if not path.is_file():
         prefix = f"{named_by} " if named_by else ""
         raise ConfigError(f"{prefix}{path}: params file not found.")
     try:
-        return yaml.safe_load(path.read_text())
+        return yamlio.load(path.read_text())  # libyaml: every stage reads its params first
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark else ""

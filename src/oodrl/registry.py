@@ -15,7 +15,8 @@ import importlib
 import os
 import sys
 from collections.abc import Iterator
-from importlib.metadata import entry_points
+from functools import cache
+from importlib.metadata import EntryPoints, entry_points
 from typing import Any
 
 from oodrl.errors import RegistryError
@@ -73,6 +74,13 @@ def import_path(path: str) -> Any:
         raise RegistryError(f"Module '{module_name}' has no attribute '{attribute}'.") from None
 
 
+@cache
+def installed_entry_points() -> EntryPoints:
+    """Every installed package's entry points, read once per process: each read scans the
+    metadata of every installed distribution, and every stage looks up three groups."""
+    return entry_points()
+
+
 class Registry:
     """Names (snake_case) to lazily imported objects of one kind."""
 
@@ -93,7 +101,7 @@ class Registry:
         if self._entry_points_read:
             return
         self._entry_points_read = True
-        for ep in entry_points(group=f"oodrl.{self.kind}s"):
+        for ep in installed_entry_points().select(group=f"oodrl.{self.kind}s"):
             self.register(ep.name, ep.value)
 
     def names(self) -> list[str]:
