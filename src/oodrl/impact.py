@@ -1,0 +1,394 @@
+"""Impact calibration (SPEC §15): what a fault at severity σ costs the agent, and the tiers.
+
+For a policy π and an online fault f, R̃(σ) = (R(σ) − R_rand) / (R_clean − R_rand): R(σ) is π's
+mean return over whole episodes with f active from their first step, R_clean the same without
+the fault, R_rand a uniformly random policy's. Episodes run in the collector
+(`oodrl.envs.collect`) with the fault's live hooks (`oodrl.injectors.apply`), one episode per
+stream: each stream is as long as the environment's time limit, and its first episode (which
+therefore always ends within it) is the one counted.
+
+Seeds, never the protocol's (ID `seed + i`, evaluation `seed + 10000 + j`, policy tuning
+`seed + 100000 + i`, final policy check 1000000 + i): π's episodes reset from
+`seed + POLICY_SEED_OFFSET + j`, the random policy's from `seed + RANDOM_SEED_OFFSET + j`,
+j < n_episodes. The clean run and every severity share π's seeds (common random numbers):
+differences along the curve are the fault's, not the start states'. The fault of stream j
+draws from `injector_rng(seed, name, j)`.
+
+Noise and non-monotone estimates: the point estimates R̃(σ) (with the exact anchor R̃(0) = 1,
+since severity 0 reproduces the clean episodes) are fitted by an isotonic, monotone
+non-increasing regression (pool-adjacent-violators, scikit-learn's IsotonicRegression, equal
+weights). A fault is taken not to help the agent more as it grows stronger; where the raw
+estimates go up, noise is the explanation, and pooling adjacent violators is the least-squares
+curve that respects it. Tiers are read on that fitted curve: the severity at which it first
+falls to the level, interpolated linearly between grid points, so mild ≤ moderate ≤ severe by
+construction. A level the fitted curve does not reach on the grid is "unreachable", never
+clipped to the largest σ. Confidence intervals: a percentile bootstrap (π's episodes resampled
+jointly across the clean run and every σ, the random policy's on their own), the isotonic fit
+and the tier read again in every replicate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from oodrl.core.adapter import EnvironmentAdapter
+from oodrl.core.injector import OnlineInjector
+from oodrl.core.policy import Policy
+from oodrl.errors import ConfigError, ContractError
+
+#: The tiers: the normalised return R̃ at which each begins (SPEC §15).
+LEVELS = {"mild": 0.95, "moderate": 0.90, "severe": 0.75}
+UNREACHABLE = "unreachable"
+BEYOND_RANGE = "beyond range"
+POLICY_SEED_OFFSET = 500_000
+RANDOM_SEED_OFFSET = 600_000
+
+
+class UniformRandomPolicy:
+    """Uniformly random actions of an adapter's action space; row i draws from `rngs[i]` (the
+    collector's per-stream generator), so its episodes are reproducible."""
+
+    mode = "random"
+    sha256 = "uniform-random"
+
+    def __init__(self, adapter: EnvironmentAdapter) -> None:
+        self.adapter = adapter
+        self.state_dim = adapter.state_dim
+        self.action_kind = adapter.action_kind
+        self.action_size = adapter.action_size
+
+    def act(self, observations: np.ndarray, rngs: Sequence[np.random.Generator]) -> np.ndarray:
+        if self.action_kind == "discrete":
+            return np.array([rng.integers(self.action_size) for rng in rngs], dtype=np.int64)
+        low, high = self.adapter.action_low, self.adapter.action_high
+        return np.stack([rng.uniform(low, high).astype(np.float32) for rng in rngs])
+
+
+def episode_limit(adapter: EnvironmentAdapter) -> int:
+    """The environment's time limit (its `max_episode_steps`): the length of an impact stream."""
+    env = adapter.make()
+    try:
+        limit = env.spec.max_episode_steps if env.spec is not None else None
+    finally:
+        env.close()
+    if not limit:
+        raise ConfigError(
+            f"{adapter.env_id} has no time limit (max_episode_steps); impact calibration needs "
+            "whole episodes: pass --horizon, the most steps an episode may take."
+        )
+    return int(limit)
+
+
+def first_episode_returns(tset: Any) -> np.ndarray:
+    """The return of each stream's first episode; refused if one did not end in the stream."""
+    first = tset.episode_index == 0
+    ended = (tset.dones & first).any(axis=1)
+    if not ended.all():
+        raise ContractError(
+            f"{int((~ended).sum())} of {len(ended)} streams did not finish their first episode "
+            f"within {tset.dones.shape[1]} steps; raise the horizon to the episode limit."
+        )
+    return np.where(first, tset.rewards.astype(np.float64), 0.0).sum(axis=1)
+
+
+@dataclass(frozen=True)
+class Returns:
+    """Per-episode returns: π clean (n,), π under the fault per severity (n,) each (the same
+    seeds), the random policy's (m,)."""
+
+    clean: np.ndarray
+    faulty: dict[float, np.ndarray]
+    random: np.ndarray
+
+
+def policy_seeds(seed: int, n_episodes: int) -> list[int]:
+    """The reset seeds of π's impact episodes (clean and every severity)."""
+    return [seed + POLICY_SEED_OFFSET + j for j in range(n_episodes)]
+
+
+def clean_returns(
+    adapter: EnvironmentAdapter, policy: Policy, n_episodes: int, *, seed: int, horizon: int,
+    workers: int = 1,
+) -> np.ndarray:  # fmt: skip
+    """Whole-episode returns of π without a fault."""
+    from oodrl.envs.collect import collect
+
+    seeds = policy_seeds(seed, n_episodes)
+    tset = collect(adapter, policy, seeds, horizon, policy_seed=seed, workers=workers)
+    return first_episode_returns(tset)
+
+
+def faulty_returns(
+    adapter: EnvironmentAdapter,
+    policy: Policy,
+    injector: OnlineInjector,
+    severities: Sequence[float],
+    n_episodes: int,
+    *,
+    seed: int,
+    horizon: int,
+    workers: int = 1,
+) -> dict[float, np.ndarray]:
+    """Whole-episode returns of π under `injector` at each severity, active from step 0."""
+    from oodrl.injectors.apply import collect_online_sets
+
+    seeds = policy_seeds(seed, n_episodes)
+    specs = [injector.spec(float(s), 0) for s in severities]
+    sets = collect_online_sets(
+        injector, adapter, policy, seeds, horizon, specs, seed, policy_seed=seed, workers=workers
+    )
+    return {float(s): first_episode_returns(t) for s, t in zip(severities, sets, strict=True)}
+
+
+def random_policy_returns(
+    adapter: EnvironmentAdapter, n_episodes: int, *, seed: int, horizon: int
+) -> np.ndarray:
+    """Whole-episode returns of the uniformly random policy on its own seeds."""
+    from oodrl.envs.collect import collect
+
+    seeds = [seed + RANDOM_SEED_OFFSET + j for j in range(n_episodes)]
+    tset = collect(adapter, UniformRandomPolicy(adapter), seeds, horizon, policy_seed=seed)
+    return first_episode_returns(tset)
+
+
+def monotone_curve(severities: Sequence[float], values: Sequence[float]) -> np.ndarray:
+    """The least-squares monotone non-increasing fit of `values` over `severities`."""
+    from sklearn.isotonic import IsotonicRegression
+
+    fit = IsotonicRegression(increasing=False).fit_transform(
+        np.asarray(severities, dtype=np.float64), np.asarray(values, dtype=np.float64)
+    )
+    return np.asarray(fit, dtype=np.float64)
+
+
+def first_crossing(xs: Sequence[float], ys: Sequence[float], level: float) -> float | None:
+    """The x at which the curve (xs, ys), linear between points, first falls to `level`;
+    None if it never does. ys[0] must be above the level (the curve starts above it)."""
+    xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(ys, dtype=np.float64)
+    below = np.flatnonzero(ys <= level)
+    if below.size == 0:
+        return None
+    i = int(below[0])
+    if i == 0:
+        return float(xs[0])
+    fraction = (ys[i - 1] - level) / (ys[i - 1] - ys[i])
+    return float(xs[i - 1] + fraction * (xs[i] - xs[i - 1]))
+
+
+def first_rise(xs: Sequence[float], ys: Sequence[float], level: float) -> float | None:
+    """The x at which the curve (xs, ys), linear between points, first rises to `level`."""
+    return first_crossing(xs, -np.asarray(ys, dtype=np.float64), -level)
+
+
+def tier_severities(
+    severities: Sequence[float], monotone: Sequence[float], levels: Mapping[str, float] = LEVELS
+) -> dict[str, float | None]:
+    """Each tier's severity on a monotone curve that includes σ = 0; None = unreachable."""
+    return {name: first_crossing(severities, monotone, level) for name, level in levels.items()}
+
+
+def _normalised(faulty_mean, clean_mean, random_mean):
+    return (faulty_mean - random_mean) / (clean_mean - random_mean)
+
+
+def _rounded(value: float | None) -> float | str:
+    return UNREACHABLE if value is None else round(float(value), 6) + 0.0
+
+
+def impact_record(
+    returns: Returns,
+    *,
+    levels: Mapping[str, float] = LEVELS,
+    n_boot: int = 1000,
+    ci: float = 0.95,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """The impact curve (raw and monotone, with bootstrap CIs) and the tiers, as YAML holds it."""
+    severities = sorted(returns.faulty)
+    if not severities or severities[0] <= 0:
+        raise ConfigError(f"The severity grid must be positive severities; got {severities}.")
+    clean, random = returns.clean, returns.random
+    faulty = np.stack([returns.faulty[s] for s in severities])  # (n_severities, n)
+    gap = clean.mean() - random.mean()
+    if gap <= 0:
+        raise ContractError(
+            f"The policy's clean mean return ({clean.mean():.3f}) is not above the random "
+            f"policy's ({random.mean():.3f}): the normalised return is undefined."
+        )
+    xs = [0.0, *severities]
+    raw = np.concatenate([[1.0], _normalised(faulty.mean(axis=1), clean.mean(), random.mean())])
+    monotone = monotone_curve(xs, raw)
+    rng = np.random.default_rng(seed)
+    policy_index = rng.integers(0, clean.size, size=(n_boot, clean.size))
+    random_index = rng.integers(0, random.size, size=(n_boot, random.size))
+    replicates = _normalised(
+        faulty[:, policy_index].mean(axis=2),  # (n_severities, n_boot)
+        clean[policy_index].mean(axis=1),
+        random[random_index].mean(axis=1),
+    ).T
+    tail = (1 - ci) / 2
+    low, high = np.quantile(replicates, [tail, 1 - tail], axis=0)
+    replicate_tiers = {name: [] for name in levels}
+    for row in replicates:
+        for name, value in tier_severities(xs, monotone_curve(xs, [1.0, *row]), levels).items():
+            replicate_tiers[name].append(math.inf if value is None else value)
+    tiers = {}
+    for name, value in tier_severities(xs, monotone, levels).items():
+        ordered = np.sort(replicate_tiers[name])
+        bounds = (
+            ordered[int(math.floor(tail * n_boot))],
+            ordered[math.ceil((1 - tail) * n_boot) - 1],
+        )
+        tiers[name] = {
+            "level": levels[name],
+            "severity": _rounded(value),
+            "ci": [_rounded(None if math.isinf(b) else b) for b in bounds],
+        }
+    curve = [
+        {
+            "severity": float(s),
+            "mean_return": _rounded(faulty[i].mean()),
+            "normalised": _rounded(raw[i + 1]),
+            "ci": [_rounded(low[i]), _rounded(high[i])],
+            "monotone": _rounded(monotone[i + 1]),
+        }
+        for i, s in enumerate(severities)
+    ]
+    return {"curve": curve, "tiers": tiers}
+
+
+def minimum_detectable_impact(
+    impact_severities: Sequence[float],
+    impact_monotone: Sequence[float],
+    metric_severities: Sequence[float],
+    metric_values: Sequence[float],
+    target: float = 0.9,
+) -> float | str:
+    """The smallest return loss 1 − R̃ at which a detection metric (matched AUROC, or
+    detection_rate@K) reaches `target` (SPEC §15), or "beyond range".
+
+    The metric's curve over its severities (linear between points) gives the first σ at which it
+    reaches the target; 1 − R̃ is read at that σ on the monotone impact curve (which includes
+    σ = 0, R̃ = 1), linear between grid points. Beyond range when the metric never reaches the
+    target, or reaches it above the impact grid's largest severity.
+    """
+    severity = first_rise(metric_severities, metric_values, target)
+    xs = np.asarray(impact_severities, dtype=np.float64)
+    if severity is None or severity > xs[-1]:
+        return BEYOND_RANGE
+    loss = 1.0 - float(np.interp(severity, xs, np.asarray(impact_monotone, dtype=np.float64)))
+    return round(loss, 6) + 0.0
+
+
+def calibrate_impact(
+    adapter: EnvironmentAdapter,
+    policy: Policy,
+    injectors: Mapping[str, OnlineInjector],
+    severities: Sequence[float],
+    n_episodes: int,
+    *,
+    seed: int = 0,
+    horizon: int | None = None,
+    n_boot: int = 1000,
+    ci: float = 0.95,
+    workers: int = 1,
+) -> dict[str, Any]:
+    """The impact document of one (environment, policy): every fault's curve and tiers."""
+    if n_episodes < 2:
+        raise ConfigError(f"Impact calibration needs n_episodes >= 2; got {n_episodes}.")
+    horizon = horizon or episode_limit(adapter)
+    random = random_policy_returns(adapter, n_episodes, seed=seed, horizon=horizon)
+    clean = clean_returns(adapter, policy, n_episodes, seed=seed, horizon=horizon, workers=workers)
+    faults = {}
+    for name in sorted(injectors):
+        injector = injectors[name]
+        faulty = faulty_returns(
+            adapter, policy, injector, severities, n_episodes, seed=seed, horizon=horizon,
+            workers=workers,
+        )  # fmt: skip
+        faults[name] = {
+            **impact_record(Returns(clean, faulty, random), n_boot=n_boot, ci=ci, seed=seed),
+            "mode": injector.mode,
+            "params": {k: v for k, v in sorted(injector.get_params().items()) if k != "severity"},
+        }
+    n = n_episodes
+    return {
+        "env_id": adapter.env_id,
+        "policy_sha256": policy.sha256,
+        "levels": dict(LEVELS),
+        "horizon": horizon,
+        "n_episodes": n,
+        "n_boot": n_boot,
+        "ci": ci,
+        "seed": seed,
+        "seeds": {
+            "policy": [seed + POLICY_SEED_OFFSET, seed + POLICY_SEED_OFFSET + n - 1],
+            "random": [seed + RANDOM_SEED_OFFSET, seed + RANDOM_SEED_OFFSET + n - 1],
+        },
+        "clean_return": _rounded(clean.mean()),
+        "random_return": _rounded(random.mean()),
+        "faults": faults,
+    }
+
+
+def impact_table(document: Mapping[str, Any]) -> str:
+    """Markdown: per fault, the severity of each tier [CI] or unreachable, and R̃ at σ = max."""
+    from oodrl.report.tables import markdown_table
+
+    def cell(tier: Mapping[str, Any]) -> str:
+        value, (low, high) = tier["severity"], tier["ci"]
+        if value == UNREACHABLE:
+            return UNREACHABLE
+        show = [v if isinstance(v, str) else f"{v:.3f}" for v in (low, high)]
+        return f"{value:.3f} [{show[0]}, {show[1]}]"
+
+    names = list(document["levels"])
+    rows = []
+    for fault, record in sorted(document["faults"].items()):
+        last = record["curve"][-1]
+        rows.append(
+            [fault, *(cell(record["tiers"][n]) for n in names),
+             f"{last['normalised']:.3f} (σ={last['severity']:g})"]
+        )  # fmt: skip
+    header = ["fault", *(f"{n} (R̃={document['levels'][n]:g})" for n in names), "R̃ at largest σ"]
+    title = (
+        f"Impact tiers, {document['env_id']}: severity σ at which the normalised return first "
+        f"falls to each level (95% bootstrap CI), {document['n_episodes']} episodes per point\n\n"
+    )
+    return title + markdown_table(header, rows) + "\n"
+
+
+def plot_impact_curves(document: Mapping[str, Any], path: str | Path) -> Path:
+    """One line per fault: R̃(σ) with its CI band (raw estimates as points, monotone fit as line),
+    the tier levels as dashed lines."""
+    from oodrl.report.plots import _colours, _figure, _save
+
+    faults = sorted(document["faults"])
+    colours = _colours(faults)
+    figure = _figure(6.4, 4.2)
+    axes = figure.subplots()
+    for fault in faults:
+        curve = document["faults"][fault]["curve"]
+        xs = [0.0, *(p["severity"] for p in curve)]
+        colour = colours[fault]
+        axes.fill_between(xs, [1.0, *(p["ci"][0] for p in curve)],
+                          [1.0, *(p["ci"][1] for p in curve)], color=colour, alpha=0.12,
+                          linewidth=0)  # fmt: skip
+        axes.plot(xs, [1.0, *(p["monotone"] for p in curve)], color=colour, label=fault)
+        axes.plot(xs[1:], [p["normalised"] for p in curve], "o", markersize=3, color=colour)
+    for name, level in document["levels"].items():
+        axes.axhline(level, color="0.4", linestyle="--", linewidth=0.8)
+        axes.annotate(name, (0.0, level), fontsize=7, color="0.3", va="bottom")
+    axes.set_xlabel("severity σ", fontsize=8)
+    axes.set_ylabel("normalised return R̃", fontsize=8)
+    axes.set_title(f"Impact curves, {document['env_id']}", fontsize=9)
+    axes.tick_params(labelsize=7)
+    axes.grid(alpha=0.3, linewidth=0.5)
+    axes.legend(fontsize=7, frameon=False)
+    return _save(figure, path)

@@ -1,0 +1,168 @@
+"""Impact calibration on a toy environment whose impact is known in closed form."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from oodrl import yamlio
+from oodrl.core.adapter import EnvironmentAdapter, SimulatorHandle
+from oodrl.errors import ContractError
+from oodrl.impact import (
+    BEYOND_RANGE,
+    LEVELS,
+    UNREACHABLE,
+    Returns,
+    calibrate_impact,
+    impact_record,
+    impact_table,
+    minimum_detectable_impact,
+    plot_impact_curves,
+)
+from oodrl.injectors.online import DynamicsScaling
+
+ENV_ID, LENGTH, DRIFT, COST = "OodrlToyDrift-v0", 10, 0.1, 0.3
+GRID = [0.2, 0.4, 0.6, 0.8, 1.0]
+
+
+class ToyDrift(gym.Env):
+    """x starts at 0 and drifts by 0.1 a step; reward = action − 0.3·x after the step's drift.
+
+    Under dynamics_scaling (factor c = 1 + gain·σ on every increment, from the first step) the
+    reward is computed before the fault rescales the step, so x before step t is 0.1·c·t and
+    an always-1 policy's return over 10 steps is exactly 10 − 0.3·(4.5·c + 1).
+    """
+
+    observation_space = gym.spaces.Box(-np.inf, np.inf, (1,), np.float32)
+    action_space = gym.spaces.Discrete(2)
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.x = 0.0
+        return np.array([self.x], np.float32), {}
+
+    def step(self, action):
+        self.x += DRIFT
+        return np.array([self.x], np.float32), float(action) - COST * self.x, False, False, {}
+
+
+if ENV_ID not in gym.registry:
+    gym.register(ENV_ID, entry_point=ToyDrift, max_episode_steps=LENGTH)
+
+
+class ToyHandle(SimulatorHandle):
+    state_names = ("x",)
+
+    def __init__(self, env):
+        self.env = env
+
+    def read_state(self):
+        return np.array([self.env.x])
+
+    def write_state(self, state):
+        self.env.x = float(state[0])
+        return np.array([self.env.x], np.float32)
+
+
+class ToyAdapter(EnvironmentAdapter):
+    env_id = ENV_ID
+
+    def handle(self, env):
+        return ToyHandle(env.unwrapped)
+
+
+class AlwaysOne:
+    state_dim, action_kind, action_size, sha256, mode = 1, "discrete", 2, "always-one", "greedy"
+
+    def act(self, observations, rngs=None):
+        return np.ones(len(observations), np.int64)
+
+
+def closed_form_return(gain: float, severity: float) -> float:
+    return LENGTH - COST * (4.5 * (1 + gain * severity) + 1)
+
+
+@pytest.fixture(scope="module")
+def document():
+    injectors = {"strong": DynamicsScaling(gain=1.5), "weak": DynamicsScaling(gain=0.5)}
+    return calibrate_impact(ToyAdapter(), AlwaysOne(), injectors, GRID, 16, n_boot=200)
+
+
+def test_the_impact_curve_is_the_closed_form(document):
+    clean, random = document["clean_return"], document["random_return"]
+    assert clean == pytest.approx(closed_form_return(1.5, 0.0), abs=1e-5)
+    assert 2.0 < random < 5.0  # ≈ 5 − 1.65: the random policy pushes 1 half the time
+    for fault, gain in (("strong", 1.5), ("weak", 0.5)):
+        for point in document["faults"][fault]["curve"]:
+            expected = closed_form_return(gain, point["severity"])
+            assert point["mean_return"] == pytest.approx(expected, abs=1e-5)
+            normalised = (expected - random) / (clean - random)
+            assert point["normalised"] == pytest.approx(normalised, abs=1e-5)
+            # Every π episode is the same, so only the random policy's mean varies.
+            assert point["ci"][0] <= point["normalised"] <= point["ci"][1]
+
+
+def test_tiers_are_the_closed_form_and_monotone(document):
+    clean, random = document["clean_return"], document["random_return"]
+    for fault, gain in (("strong", 1.5), ("weak", 0.5)):
+        tiers = document["faults"][fault]["tiers"]
+        reached = []
+        for name, level in LEVELS.items():
+            # R̃(σ) = 1 − 0.3·4.5·gain·σ / (R_clean − R_rand): linear, so interpolation is exact.
+            severity = (1 - level) * (clean - random) / (COST * 4.5 * gain)
+            if severity <= GRID[-1]:
+                assert tiers[name]["severity"] == pytest.approx(severity, abs=1e-4)
+                reached.append(tiers[name]["severity"])
+            else:
+                assert tiers[name]["severity"] == UNREACHABLE
+        assert reached == sorted(reached)
+    assert document["faults"]["weak"]["tiers"]["severe"]["severity"] == UNREACHABLE
+    assert document["faults"]["strong"]["tiers"]["severe"]["severity"] != UNREACHABLE
+
+
+def test_the_document_is_deterministic_and_renders(document, tmp_path):
+    injectors = {"strong": DynamicsScaling(gain=1.5), "weak": DynamicsScaling(gain=0.5)}
+    again = calibrate_impact(ToyAdapter(), AlwaysOne(), injectors, GRID, 16, n_boot=200)
+    assert yamlio.dump(again) == yamlio.dump(document)
+    assert document["seeds"] == {"policy": [500000, 500015], "random": [600000, 600015]}
+    table = impact_table(document)
+    assert "| weak" in table and UNREACHABLE in table
+    assert plot_impact_curves(document, tmp_path / "impact.png").stat().st_size > 0
+
+
+def test_a_noisy_non_monotone_curve_is_fitted_monotone_before_reading_tiers():
+    n = 4
+    returns = Returns(
+        clean=np.full(n, 10.0),
+        # R̃ = 0.90, 0.94 (a noisy rise), 0.70: pooled to 0.92, 0.92, 0.70.
+        faulty={0.2: np.full(n, 9.0), 0.4: np.full(n, 9.4), 0.6: np.full(n, 7.0)},
+        random=np.zeros(n),
+    )
+    record = impact_record(returns, n_boot=50)
+    assert [p["normalised"] for p in record["curve"]] == [0.9, 0.94, 0.7]
+    assert [p["monotone"] for p in record["curve"]] == pytest.approx([0.92, 0.92, 0.7])
+    tiers = {name: t["severity"] for name, t in record["tiers"].items()}
+    # mild: between (0, 1) and (0.2, 0.92); moderate: between (0.4, 0.92) and (0.6, 0.70), not
+    # at 0.2 where the raw estimate dips to 0.90.
+    assert tiers["mild"] == pytest.approx(0.125)
+    assert tiers["moderate"] == pytest.approx(0.4 + 0.02 / 0.22 * 0.2, abs=1e-6)
+    assert tiers["severe"] == pytest.approx(0.4 + 0.17 / 0.22 * 0.2, abs=1e-6)
+
+
+def test_a_policy_no_better_than_random_is_refused():
+    returns = Returns(np.zeros(3), {0.5: np.zeros(3)}, np.ones(3))
+    with pytest.raises(ContractError, match="not above the random"):
+        impact_record(returns)
+
+
+def test_minimum_detectable_impact_interpolates_on_the_impact_curve():
+    impact_xs, impact_curve = [0.0, 0.5, 1.0], [1.0, 0.9, 0.7]
+    # The metric reaches 0.9 at σ = 0.3, where R̃ = 1 − 0.1·0.6 = 0.94: a 6% return loss.
+    loss = minimum_detectable_impact(impact_xs, impact_curve, [0.1, 0.2, 0.4], [0.5, 0.8, 1.0])
+    assert loss == pytest.approx(0.06)
+    assert minimum_detectable_impact(impact_xs, impact_curve, [0.1, 0.4], [0.5, 0.85]) == (
+        BEYOND_RANGE
+    )
+    # Reached only above the impact grid's range: beyond range, not extrapolated.
+    assert minimum_detectable_impact([0.0, 0.2], [1.0, 0.9], [0.1, 0.4], [0.5, 0.95]) == (
+        BEYOND_RANGE
+    )
