@@ -19,6 +19,7 @@ from oodrl.errors import ConfigError
 from oodrl.layout import detector_pipeline
 from oodrl.pipeline import (
     MERGED_PARAMS,
+    SUBREPO_FILES,
     Project,
     check,
     check_pipeline,
@@ -58,6 +59,7 @@ def test_a_hand_edited_pipeline_is_refused(tmp_path, repo_root):
         tmp_path / "dvc.yaml",
         *(tmp_path / detector_pipeline(d) for d in detectors),
         tmp_path / "pipeline/suite/dvc.yaml",
+        *(tmp_path / "pipeline/suite" / name for name in SUBREPO_FILES),
     ]
     check(tmp_path)
     with (tmp_path / "dvc.yaml").open("a") as pipeline:
@@ -106,7 +108,12 @@ def test_environment_pipeline_paths_are_relative_to_its_directory(env_project):
         *(project / name for project in (env_project, env)
           for name in ["dvc.yaml", *(detector_pipeline(d) for d in detectors)]),
         suite,
+        *(project / name for project in (env, suite.parent) for name in SUBREPO_FILES),
     ]  # fmt: skip
+    # The environment's and the suite's pipelines are DVC projects sharing the root's cache.
+    config = (env / ".dvc" / "config").read_text()
+    assert (env / ".dvc" / "../../../.dvc").resolve() == env_project / ".dvc"
+    assert "dir = ../../../.dvc/cache" in config
     stages = yaml.safe_load((env / "dvc.yaml").read_text())["stages"]
     assert stages["check_params"]["deps"] == ["params.yaml", "../../params.yaml", "../../src/oodrl"]
     assert "--merged data/params.yaml" in stages["check_params"]["cmd"]
@@ -135,6 +142,13 @@ def test_a_shared_fan_out_change_makes_environment_pipelines_stale(env_project):
     write(env_project)
     assert not (env_project / detector_pipeline("pedm")).exists()
     check(env_project)
+
+
+def test_an_environment_pipeline_without_its_dvc_project_is_refused(env_project):
+    write(env_project)
+    (env_project / "pipeline" / "cartpole" / ".dvc" / "config").unlink()
+    with pytest.raises(ConfigError, match=r"pipeline/cartpole/\.dvc/config is missing"):
+        check_pipeline(env_project / "pipeline" / "cartpole" / "dvc.yaml")
 
 
 def test_environment_stamps_name_its_adapter(env_project):

@@ -1,5 +1,7 @@
 """An environment's own pipeline (SPEC §12): pipeline/cartpole/dvc.yaml, generated from the
-template, reads pipeline/cartpole/params.yaml, which extends the shared params.yaml."""
+template, reads pipeline/cartpole/params.yaml, which extends the shared params.yaml. The
+directory is a DVC project of its own (a subrepo sharing the root's cache): `dvc repro` runs
+in it, and the root's `dvc status` does not list its stages."""
 
 from __future__ import annotations
 
@@ -29,14 +31,14 @@ def cartpole_repo(tmp_path_factory, repo_root, _default_params) -> Path:
     run(repo, "oodrl", "pipeline", "write")
     run(repo, "git", "add", "-A")
     run(repo, "git", "commit", "-q", "-m", "tiny params")
-    repro(repo, f"{ENV}/dvc.yaml")
+    repro(repo / ENV)
     return repo
 
 
 def _ran(repo: Path) -> set[str]:
     """The stages that ran, named as in the root pipeline (e.g. `detectors/<d>/dvc.yaml:fit`)."""
-    ran = repro(repo, f"{ENV}/dvc.yaml")
-    return {name.removeprefix(f"{ENV}/").removeprefix("dvc.yaml:") for name in ran}
+    ran = repro(repo / ENV)
+    return {name.removeprefix("dvc.yaml:") for name in ran}
 
 
 def test_environment_pipeline_builds_in_its_directory(cartpole_repo):
@@ -48,6 +50,11 @@ def test_environment_pipeline_builds_in_its_directory(cartpole_repo):
     assert (attrs["env_id"], attrs["T"]) == ("CartPole-v1", 60)
     assert (env / "dvc.lock").is_file() and not (cartpole_repo / "data" / "id.zarr").exists()
     assert _ran(cartpole_repo) == set()
+    # Its outputs went to the root's cache, and the root's status ignores it (never built there).
+    assert any((cartpole_repo / ".dvc" / "cache" / "files" / "md5").iterdir())
+    assert not (env / ".dvc" / "cache").exists()
+    root_status = run(cartpole_repo, "dvc", "status", "--json").stdout
+    assert "cartpole" not in root_status and "collect_id" in root_status
 
 
 def test_a_shared_detector_knob_reruns_that_detector_in_the_environment(cartpole_repo):
