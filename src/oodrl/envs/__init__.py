@@ -1,12 +1,42 @@
 """Environment adapters: the only environment-aware code in oodrl (SPEC §2, §11).
 
 Registered lazily by Gymnasium id; `ENVIRONMENTS.get(id)()` is the adapter every collector,
-injector check and stage is handed.
+injector check and stage is handed. Any other id in gymnasium's registry gets the generic
+adapter (`oodrl.envs.generic`, SPEC §18).
 """
 
+from typing import Any
+
+from oodrl.errors import RegistryError
 from oodrl.registry import Registry
 
-ENVIRONMENTS = Registry("environment")
+GENERIC_ADAPTER = "oodrl.envs.generic:GenericAdapter"
+
+
+class EnvironmentRegistry(Registry):
+    """The suite's adapters by id; every other Gymnasium id maps to the generic adapter."""
+
+    def path(self, name: str) -> str:
+        if name in self:
+            return super().path(name)
+        import gymnasium
+
+        if name not in gymnasium.registry:
+            try:
+                super().path(name)
+            except RegistryError as error:
+                raise RegistryError(f"{error} Or any id in gymnasium's registry.") from None
+        return GENERIC_ADAPTER
+
+    def get(self, name: str) -> Any:
+        if ":" in name or name in self or self.path(name) != GENERIC_ADAPTER:
+            return super().get(name)
+        from oodrl.envs.generic import generic_adapter
+
+        return generic_adapter(name)
+
+
+ENVIRONMENTS = EnvironmentRegistry("environment")
 ENVIRONMENTS.register("LunarLander-v3", "oodrl.envs.lunar_lander:LunarLanderAdapter")
 ENVIRONMENTS.register("CartPole-v1", "oodrl.envs.classic_control:CartPoleAdapter")
 ENVIRONMENTS.register("Acrobot-v1", "oodrl.envs.classic_control:AcrobotAdapter")

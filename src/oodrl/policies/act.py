@@ -11,6 +11,13 @@ Architectures (the ``kind`` of a checkpoint's ``architecture`` mapping):
   mean network in ``greedy`` mode, of a per-row noise sample in ``noisy`` mode.
 - ``tanh_actor`` — Linear/ReLU layers, then ``tanh`` rescaled to ``[action_low, action_high]``:
   the deterministic action of a SAC actor (continuous control).
+- ``clipped_actor`` — layers ending in the action vector, clipped to ``[action_low,
+  action_high]``: the deterministic action (the Gaussian's mean) of a PPO or A2C actor.
+
+Two optional keys hold what converted Stable-Baselines3 policies need (SPEC §18):
+``activation`` (``relu``, the default, or ``tanh``) between layers, and
+``observation_normalization`` (``mean``, ``var``, ``epsilon``, ``clip``: VecNormalize's
+statistics), applied to each observation first, in float64 as VecNormalize does.
 """
 
 from __future__ import annotations
@@ -25,7 +32,8 @@ from oodrl import numerics
 from oodrl.errors import PolicyError
 
 PolicyMode = Literal["greedy", "noisy"]
-ARCHITECTURE_KINDS = ("noisy_dqn", "mlp", "tanh_actor")
+ARCHITECTURE_KINDS = ("noisy_dqn", "mlp", "tanh_actor", "clipped_actor")
+ACTIVATIONS = {"relu": numerics.relu, "tanh": numerics.tanh}
 
 
 @dataclass(frozen=True)
@@ -44,12 +52,21 @@ class LayeredPolicy:
     action_kind: Literal["discrete", "continuous"]
 
     def __init__(
-        self, layers: Sequence[Layer], *, kind: str, mode: PolicyMode = "greedy", sha256: str = ""
+        self,
+        layers: Sequence[Layer],
+        *,
+        kind: str,
+        mode: PolicyMode = "greedy",
+        sha256: str = "",
+        activation: str = "relu",
+        normalization: Mapping[str, Any] | None = None,
     ) -> None:
         self.layers = list(layers)
         self.kind = kind
         self.mode = mode
         self.sha256 = sha256
+        self.activation = ACTIVATIONS[activation]
+        self.normalization = normalization
         self.state_dim = int(self.layers[0].weight.shape[1])
         #: Discrete: the number of actions; continuous: the action vector's dimension.
         self.action_size = int(self.layers[-1].weight.shape[0])
@@ -59,6 +76,8 @@ class LayeredPolicy:
     ) -> np.ndarray:
         """The last layer's outputs (n, action_size) float32, before any argmax or squashing."""
         x = np.asarray(observations, dtype=np.float32).reshape(-1, self.state_dim)
+        if self.normalization is not None:
+            x = self._normalized(x)
         noise = self._row_noise(rngs, len(x)) if self.mode == "noisy" else None
         last = len(self.layers) - 1
         for i, layer in enumerate(self.layers):
@@ -66,8 +85,17 @@ class LayeredPolicy:
             if noise is not None:
                 eps_in, eps_out = noise[i]
                 y = y + eps_out * numerics.linear(x * eps_in, layer.weight_sigma, layer.bias_sigma)
-            x = numerics.relu(y) if i < last else y
+            x = self.activation(y) if i < last else y
         return x
+
+    def _normalized(self, x: np.ndarray) -> np.ndarray:
+        """VecNormalize's ``clip((obs − mean) / √(var + ε), ±clip)``: elementwise float64 IEEE
+        operations (exact, so machine-independent), then float32 as the network takes it."""
+        stats = self.normalization
+        mean, var = np.asarray(stats["mean"]), np.asarray(stats["var"])
+        scaled = (x.astype(np.float64) - mean) / np.sqrt(var + float(stats["epsilon"]))
+        clip = float(stats["clip"])
+        return np.clip(scaled, -clip, clip).astype(np.float32)
 
     def _row_noise(
         self, rngs: Sequence[np.random.Generator] | None, n: int
@@ -119,6 +147,15 @@ class TanhActorPolicy(LayeredPolicy):
         return self.low + (np.float32(0.5) * (squashed + np.float32(1.0))) * (self.high - self.low)
 
 
+class ClippedActorPolicy(TanhActorPolicy):
+    """``clip(outputs, low, high)``: actions (n, d_a) float32 (SB3's clipping of a PPO action)."""
+
+    def act(
+        self, observations: np.ndarray, rngs: Sequence[np.random.Generator] | None = None
+    ) -> np.ndarray:
+        return np.clip(self.outputs(observations), self.low, self.high)
+
+
 def policy_from_checkpoint(
     architecture: Mapping[str, Any],
     state_dict: Mapping[str, Any],
@@ -133,6 +170,16 @@ def policy_from_checkpoint(
         raise PolicyError(f"policy mode must be 'greedy' or 'noisy'; got {mode!r}")
     if mode == "noisy" and kind != "noisy_dqn":
         raise PolicyError(f"mode 'noisy' needs a noisy_dqn network, not {kind!r}")
+    activation = architecture.get("activation", "relu")
+    if activation not in ACTIVATIONS:
+        raise PolicyError(f"unknown activation {activation!r}; known: {list(ACTIVATIONS)}")
+    common = {
+        "kind": kind,
+        "mode": mode,
+        "sha256": sha256,
+        "activation": activation,
+        "normalization": architecture.get("observation_normalization"),
+    }
     arrays = {k: np.asarray(_numpy(v), dtype=np.float32) for k, v in state_dict.items()}
     layers = _noisy_layers(arrays) if kind == "noisy_dqn" else _plain_layers(arrays)
     for before, after in zip(layers[:-1], layers[1:], strict=True):
@@ -147,16 +194,11 @@ def policy_from_checkpoint(
         raise PolicyError(
             f"weights do not fit architecture {dict(architecture)} (their hidden sizes: {hidden})"
         )
-    if kind == "tanh_actor":
-        return TanhActorPolicy(
-            layers,
-            low=architecture["action_low"],
-            high=architecture["action_high"],
-            kind=kind,
-            mode=mode,
-            sha256=sha256,
-        )
-    return ArgmaxPolicy(layers, kind=kind, mode=mode, sha256=sha256)
+    if kind in ("tanh_actor", "clipped_actor"):
+        actor = TanhActorPolicy if kind == "tanh_actor" else ClippedActorPolicy
+        low, high = architecture["action_low"], architecture["action_high"]
+        return actor(layers, low=low, high=high, **common)
+    return ArgmaxPolicy(layers, **common)
 
 
 def _numpy(value: Any) -> np.ndarray:

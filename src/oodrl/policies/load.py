@@ -34,7 +34,7 @@ from oodrl.errors import PolicyError
 from oodrl.policies.act import ARCHITECTURE_KINDS, PolicyMode, policy_from_checkpoint
 from oodrl.policies.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
 
-SB3_ALGORITHMS = ("DQN", "PPO", "SAC", "TD3")
+SB3_ALGORITHMS = ("A2C", "DQN", "PPO", "SAC", "TD3")
 ACCEPTED = (
     "accepted: an oodrl checkpoint (models/policy.pt), a torch state_dict with "
     f"architecture={{'kind': one of {list(ARCHITECTURE_KINDS)}, ...}}, "
@@ -167,7 +167,8 @@ def _check_dims(path: Path, policy: Any, state_dim: int | None, action_size: int
 
 
 def _sb3_algorithm(data: bytes) -> str | None:
-    """``"DQN"``/``"PPO"``/``"SAC"``/``"TD3"``/``"other"`` for an SB3 zip, None for other files.
+    """``"A2C"``/``"DQN"``/``"PPO"``/``"SAC"``/``"TD3"``/``"other"`` for an SB3 zip, None for
+    other files.
 
     The zip's ``data`` entry is JSON of the model's attributes; the policy class's module names
     the algorithm (PPO shares ``ActorCriticPolicy`` with A2C but alone has ``clip_range``).
@@ -189,6 +190,8 @@ def _sb3_algorithm(data: bytes) -> str | None:
         return "DQN"
     if "clip_range" in meta:
         return "PPO"
+    if module == "stable_baselines3.common.policies":
+        return "A2C"
     return "other"
 
 

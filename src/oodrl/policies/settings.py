@@ -80,5 +80,25 @@ class SacConfig(PolicyTrainConfig):
     early_stop_return: float = 0.0
 
 
+@dataclass(frozen=True, kw_only=True)
+class ImportedConfig:
+    """A policy `oodrl new` converted or trained (SPEC §18): the pipeline keeps it and never
+    trains it. What it came from, recorded so the kept policy's report can be checked."""
+
+    env_id: str
+    source: str
+    """How it was made: 'Stable-Baselines3 PPO .zip', 'RL Zoo folder', 'oodrl new --train sac'."""
+    file: str = ""
+    """The source file's name (no directory: no host paths in the pipeline's files)."""
+    sha256: str = ""
+
+    def as_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
 #: ``policy.train.algorithm`` → the settings of its trainer.
-TRAINER_CONFIGS: dict[str, type[PolicyTrainConfig]] = {"noisy_dqn": TrainConfig, "sac": SacConfig}
+TRAINER_CONFIGS: dict[str, type] = {
+    "noisy_dqn": TrainConfig,
+    "sac": SacConfig,
+    "imported": ImportedConfig,
+}

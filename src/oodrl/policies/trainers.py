@@ -26,7 +26,7 @@ def retrain_requested() -> bool:
 def trainer(config):
     """The training function of a `policy.train` settings type: the NoisyNet DQN (discrete
     actions) or SAC (continuous control; imports Stable-Baselines3 only when it trains)."""
-    from oodrl.policies.settings import SacConfig, TrainConfig
+    from oodrl.policies.settings import ImportedConfig, SacConfig, TrainConfig
 
     if isinstance(config, TrainConfig):
         from oodrl.policies.train import train
@@ -36,6 +36,12 @@ def trainer(config):
         from oodrl.policies.sac import train_sac
 
         return train_sac
+    if isinstance(config, ImportedConfig):
+        raise PolicyError(
+            f"policy.train: this pipeline's policy was imported ({config.source} "
+            f"{config.file}), not trained here; to change it, make a new pipeline with "
+            "`oodrl new NAME --env ID --policy PATH`."
+        )
     raise ConfigError(f"policy.train: no trainer for {type(config).__name__}.")
 
 
