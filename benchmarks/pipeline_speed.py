@@ -7,13 +7,13 @@ In a fresh copy of the repository (committed policies, no outputs):
 1. Per pipeline, its simulation floor: roll out every episode it simulates (ID, clean
    evaluation, each online injector's headline and sweep sets) with the collector and nothing
    else — no stores written, no detectors.
-2. Per pipeline, a full `dvc repro <pipeline>/dvc.yaml` and the seconds spent inside its stage
-   commands (the rest is process start-up and DVC's own bookkeeping); then the suite's
-   leaderboard (only when every pipeline is built).
-3. A no-op `dvc repro` of the whole suite (or of the pipelines built), and the seconds DVC takes
-   to build its index of the repository (every dvc.yaml and dvc.lock parsed into stages): every
-   DVC command builds it, whatever its target, and `dvc exp run` builds it again after each stage
-   it runs.
+2. Per pipeline, a full `dvc repro` in its directory (each pipeline is a DVC project of its
+   own) and the seconds spent inside its stage commands (the rest is process start-up and DVC's
+   own bookkeeping); then the suite's leaderboard (only when every pipeline is built).
+3. A no-op `dvc repro` of every project built (one after another), `dvc status` of the root, and
+   the seconds DVC takes to build the root's index (every dvc.yaml and dvc.lock of the project
+   parsed into stages): every DVC command builds it, and `dvc exp run` builds it again after
+   each stage it runs.
 4. On the root pipeline (LunarLander, the paper default): one injector's knob, one detector's
    knob, `dvc exp run -S anomaly.severity=0.6`, and the same variant as an edit of params.yaml,
    `dvc repro` and `dvc exp save`, each timed with the stages it ran.
@@ -39,11 +39,10 @@ for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
 
 import yaml  # noqa: E402
 
-from oodrl.layout import DETECTOR_PIPELINES  # noqa: E402
 from oodrl.testing.pipeline import copy_project, repro, run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-SUITE = "pipeline/suite/dvc.yaml"
+SUITE = "pipeline/suite"
 
 
 def simulation_floor(pipeline: Path) -> tuple[float, int]:
@@ -76,10 +75,18 @@ def stage_bodies(pipeline: Path) -> float:
     return sum(json.loads(path.read_text())["wall_s"] for path in records)
 
 
-def timed_repro(repo: Path, *args: str) -> tuple[float, list[str]]:
+def timed_repro(project: Path, *args: str) -> tuple[float, list[str]]:
+    """`dvc repro` in one DVC project (the root, or a pipeline's directory)."""
     start = time.perf_counter()
-    ran = repro(repo, *args)
+    ran = repro(project, *args)
     return time.perf_counter() - start, ran
+
+
+def timed_status(project: Path) -> tuple[float, bool]:
+    """`dvc status` of one project: seconds, and whether it printed nothing to do."""
+    start = time.perf_counter()
+    done = run(project, "dvc", "status", "-q", check=False)
+    return time.perf_counter() - start, done.returncode == 0
 
 
 def dvc_index(repo: Path) -> tuple[float, int, int]:
@@ -134,11 +141,7 @@ def knob_runs(repo: Path) -> dict[str, tuple[float, int]]:
     seconds, ran = timed_repro(repo, "--no-run-cache")
     figures["headline severity, plain dvc repro"] = (seconds, len(ran))
     start = time.perf_counter()
-    # Targets: the root's DVC files (DVC refuses to save pipelines whose outputs are missing).
-    detector_files = sorted(
-        str(f.relative_to(repo)) for f in repo.glob(f"{DETECTOR_PIPELINES}/*/dvc.yaml")
-    )
-    run(repo, "dvc", "exp", "save", "-n", "severity-0.6", "dvc.yaml", *detector_files)
+    run(repo, "dvc", "exp", "save", "-n", "severity-0.6")
     figures["then dvc exp save"] = (time.perf_counter() - start, 0)
     return figures
 
@@ -159,16 +162,18 @@ def main() -> None:
 
     with tempfile.TemporaryDirectory() as tmp:
         repo = copy_project(ROOT, Path(tmp) / "repo")
-        if args.cache_dir:
-            run(repo, "dvc", "cache", "dir", str(args.cache_dir.resolve()))
+        if args.cache_dir:  # every project's: each names the root's cache in its .dvc/config
+            for project in [".", *every[1:], SUITE]:
+                run(repo / project, "dvc", "cache", "dir", "--local", str(args.cache_dir.resolve()))
         rows, floor_total, full_total = [], 0.0, 0.0
         for name in args.pipelines:
             floor, steps = simulation_floor(repo / name)
             if args.floors_only:
+                rows.append({"pipeline": name, "floor_s": floor, "steps": steps})
+                floor_total += floor
                 print(f"{name}: {steps} steps, floor {floor:.1f} s", flush=True)
                 continue
-            target = f"{name}/dvc.yaml" if name != "." else "dvc.yaml"
-            full, ran = timed_repro(repo, target)
+            full, ran = timed_repro(repo / name)
             bodies = stage_bodies(repo / name)
             rows.append({"pipeline": name, "floor_s": floor, "steps": steps, "full_s": full,
                          "stage_bodies_s": bodies, "stages": len(ran)})  # fmt: skip
@@ -178,24 +183,28 @@ def main() -> None:
                   f"({len(ran)} stages; {bodies:.1f} s inside stage commands) = "
                   f"{full / floor:.1f}× the floor", flush=True)  # fmt: skip
         if args.floors_only:
+            write_figures(args.json, {"pipelines": rows, "suite_floor_s": floor_total})
             return
-        suite_target = SUITE if args.pipelines == every else None
-        if suite_target:
-            seconds, ran = timed_repro(repo, suite_target)
+        projects = list(args.pipelines)
+        if args.pipelines == every:
+            seconds, ran = timed_repro(repo / SUITE)
             full_total += seconds
+            projects.append(SUITE)
             print(f"leaderboard: {seconds:.1f} s ({len(ran)} stages)")
-        noop_targets = [suite_target] if suite_target else [
-            f"{n}/dvc.yaml" if n != "." else "dvc.yaml" for n in args.pipelines
-        ]  # fmt: skip
-        noop, ran = timed_repro(repo, *noop_targets)
-        assert ran == [], f"the no-op repro ran {ran}"
+        noop = 0.0
+        for project in projects:
+            seconds, ran = timed_repro(repo / project)
+            assert ran == [], f"the no-op repro of {project} ran {ran}"
+            noop += seconds
+        status_s, clean = timed_status(repo)
         index_s, stages, files = dvc_index(repo)
         print(f"suite: floor {floor_total:.1f} s; full {full_total:.1f} s = "
-              f"{full_total / floor_total:.1f}× the floor; no-op repro {noop:.2f} s, of which "
-              f"DVC's index of the repository ({stages} stages in {files} DVC files) "
-              f"{index_s:.2f} s")  # fmt: skip
+              f"{full_total / floor_total:.1f}× the floor; no-op repro of {len(projects)} "
+              f"projects {noop:.2f} s; root `dvc status` {status_s:.2f} s "
+              f"({'clean' if clean else 'NOT clean'}); DVC's index of the root project "
+              f"({stages} stages in {files} DVC files) {index_s:.2f} s")  # fmt: skip
         figures = {"pipelines": rows, "suite_floor_s": floor_total, "suite_full_s": full_total,
-                   "noop_s": noop,
+                   "noop_s": noop, "root_status": {"s": status_s, "clean": clean},
                    "dvc_index": {"s": index_s, "stages": stages, "files": files}}  # fmt: skip
         root_full = next((r["full_s"] for r in rows if r["pipeline"] == "."), None)
         if not args.no_knobs and root_full:
@@ -204,8 +213,13 @@ def main() -> None:
                 print(f"{name}: {seconds:.1f} s ({stages} stages) = "
                       f"{seconds / root_full:.0%} of the root's full run")  # fmt: skip
             figures["knobs"] = {k: {"s": s, "stages": n} for k, (s, n) in knobs.items()}
-        if args.json:
-            args.json.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
+        write_figures(args.json, figures)
+
+
+def write_figures(path: Path | None, figures: dict) -> None:
+    """--json: the figures of this run (with --floors-only, the floors alone)."""
+    if path is not None:
+        path.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
 
 
 if __name__ == "__main__":
