@@ -1,4 +1,4 @@
-"""The suite's leaderboard report from per-environment results files."""
+"""The suite's leaderboard report from per-(environment, policy) results files."""
 
 from __future__ import annotations
 
@@ -10,26 +10,44 @@ import pytest
 
 from oodrl import yamlio
 from oodrl.errors import StoreError
-from oodrl.report.leaderboard import read_cells, run_leaderboard
+from oodrl.report.leaderboard import read_inputs, run_leaderboard
 
 DETECTORS = ("cusum", "kde_density", "pedm")
 
 
-def write_results(path: Path, seed: int, strength: dict[str, float]) -> Path:
+def write_results(
+    path: Path,
+    seed: int,
+    strength: dict[str, float],
+    *,
+    tiers: tuple[str | None, ...] = (None,),
+    detection: bool = False,
+    extra: dict | None = None,
+) -> Path:
+    """A results file as the metrics stage writes it; tier None = a record without a tier."""
     rng = np.random.default_rng(seed)
     records = [
         {"kind": "null", "detector": d, "injector": None, "mode": "posthoc", "metrics": {}}
-        for d in DETECTORS
+        for d in strength
     ]
-    for anomaly in ("gaussian_state_noise", "stuck_actuator"):
-        for d in DETECTORS:
-            episodes = np.clip(strength[d] + 0.05 * rng.standard_normal(6), 0, 1)
-            records.append({
-                "kind": "anomaly", "detector": d, "injector": anomaly, "mode": "posthoc",
-                "metrics": {}, "episodes": {"matched_auroc": [float(v) for v in episodes]},
-            })  # fmt: skip
+    for tier in tiers:
+        for anomaly in ("gaussian_state_noise", "stuck_actuator", "gradual_drift"):
+            for d in strength:
+                shift = {"mild": -0.2, "severe": 0.0, None: 0.0}[tier]
+                episodes = np.clip(strength[d] + shift + 0.05 * rng.standard_normal(6), 0, 1)
+                record = {
+                    "kind": "anomaly", "detector": d, "injector": anomaly, "mode": "posthoc",
+                    "metrics": {}, "episodes": {"matched_auroc": [float(v) for v in episodes]},
+                }  # fmt: skip
+                if tier is not None:
+                    record["tier"] = tier
+                if detection:
+                    hits = rng.random(6) < strength[d] + shift
+                    record["episodes"]["detection_rate@100"] = [float(h) for h in hits]
+                    record["operating_point"] = {"alpha": 0.05, "k": 100}
+                records.append(record)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yamlio.dump({"records": records}))
+    path.write_text(yamlio.dump({"records": records} | (extra or {})))
     return path
 
 
@@ -45,12 +63,32 @@ def results(tmp_path: Path) -> dict[str, Path]:
     }
 
 
-def test_report_files_rank_detectors_and_reproduce(results, tmp_path: Path):
+def table_rows(markdown: str, heading: str) -> list[str]:
+    """The first column of the first table after the line starting with `heading`."""
+    lines = markdown.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(heading))
+    rows = []
+    for line in lines[start + 4 :]:
+        if not line.startswith("|"):
+            break
+        rows.append(line.split(" | ")[0].lstrip("| "))
+    return rows
+
+
+def test_todays_results_build_the_headline_table_and_reproduce(results, tmp_path: Path):
     board = run_leaderboard(results, tmp_path / "out", n_boot=200, ci=0.95, seed=0)
-    assert board.n_cells == 4 and board.environments == ("CartPole-v1", "Pendulum-v1")
+    lead = board.overall[board.lead]
+    assert board.lead == ("matched_auroc", "headline")
+    assert lead.n_cells == 6 and lead.environments == ("CartPole-v1", "Pendulum-v1")
+    assert lead.bootstrap == "episodes"
     table = (tmp_path / "out" / "leaderboard.md").read_text()
-    rows = [line.split(" | ")[0].lstrip("| ") for line in table.splitlines()[4:7]]
-    assert rows == ["cusum", "pedm", "kde_density"]  # by IQM
+    heading = "## Tier `headline`: mean matched AUROC per detector and environment (6 cells)"
+    assert table_rows(table, heading) == ["cusum", "pedm", "kde_density"]  # by IQM
+    assert "| detector | CartPole-v1 | Pendulum-v1 | IQM [95% CI] | mean [95% CI] |" in table
+    assert "episodes resampled within each cell (one run per cell)" in table
+    assert "One policy (policy 0): nothing to compare." in table
+    assert "Protocol version 1 (unstamped results)" in table
+    assert "None of them is in the results: no cell is flagged." in table
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["iqm.cusum"] > metrics["iqm.pedm"] > metrics["iqm.kde_density"]
     assert (tmp_path / "out" / "leaderboard.png").read_bytes()[:4] == b"\x89PNG"
@@ -59,10 +97,78 @@ def test_report_files_rank_detectors_and_reproduce(results, tmp_path: Path):
     assert first == {p.name: p.read_bytes() for p in (tmp_path / "again").iterdir()}
 
 
-def test_missing_or_old_results_are_one_line_errors(results, tmp_path: Path):
+def test_tiers_policies_operating_points_flags_and_mdi(tmp_path: Path):
+    strength = {"cusum": 0.9, "kde_density": 0.6, "pedm": 0.7, "time_index": 0.97}
+    mdi = {"minimum_detectable_impact": {
+        "cusum": {"gradual_drift": {"matched AUROC reaches 0.9": 0.031,
+                                    "detection_rate@100 reaches 0.9": "beyond range"}},
+        "pedm": {"gradual_drift": {"matched AUROC reaches 0.9": 0.12}},
+    }}  # fmt: skip
+    results = {
+        (env, policy): write_results(
+            tmp_path / env / policy / "results.yaml",
+            seed,
+            strength,
+            tiers=("severe", "mild"),
+            detection=True,
+            extra=mdi | {"protocol_version": 2},
+        )  # fmt: skip
+        for seed, (env, policy) in enumerate(
+            [("CartPole-v1", "0"), ("CartPole-v1", "1"), ("Hopper-v5", "0"), ("Hopper-v5", "1")]
+        )
+    }
+    board = run_leaderboard(results, tmp_path / "out", n_boot=100, ci=0.95, seed=0)
+    assert board.lead == ("detection_rate@100", "mild")
+    assert board.overall[board.lead].bootstrap == "runs"
+    assert board.overall[board.lead].runs == (2,) * 6
+    text = (tmp_path / "out" / "leaderboard.md").read_text()
+    headings = [line for line in text.splitlines() if line.startswith("## ")]
+    assert headings[0].startswith(
+        "## Tier `mild`: mean detection_rate@100 at α = 0.05 per detector and environment"
+    )
+    assert headings[1].startswith("## Tier `mild`: mean matched AUROC")
+    assert headings[2].startswith("## Tier `severe`")
+    assert "Protocol version 2;" in text and "2 policies (0, 1)" in text
+    assert "policies (runs) resampled within each cell" in text
+    assert "### By fault family" in text and "observation (2 cells)" in text
+    assert "Kendall τ between per-policy rankings (by IQM): 0–1:" in text
+    # time_index (0.97, −0.2 at mild) detects every cell at severe: all flagged there.
+    assert "CartPole-v1 / gradual_drift / severe | time_index" in text
+    assert "## Minimum detectable impact: the smallest return loss at which matched AUROC" in text
+    assert "| CartPole-v1 / policy 0 / gradual_drift | 3.1% | 12.0% |" in text
+    assert "| beyond range |" in text
+    document = yamlio.load((tmp_path / "out" / "leaderboard.yaml").read_text())
+    assert document["protocol_version"] == 2 and document["alpha"] == 0.05
+    mild = document["boards"]["detection_rate@100"]["mild"]
+    assert len(mild["performance_profile"]["taus"]) == 51
+    assert mild["stability"]["policies"] == ["0", "1"]
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert "iqm.cusum" in metrics and "matched_auroc.severe.iqm.cusum" in metrics
+
+
+def test_mixed_protocol_versions_are_refused_before_anything_is_written(results, tmp_path: Path):
+    newer = write_results(
+        tmp_path / "c" / "results.yaml", 2, {d: 0.7 for d in DETECTORS},
+        extra={"protocol_version": 2, "params_hash": "sha256:0"},
+    )  # fmt: skip
+    with pytest.raises(StoreError) as error:
+        run_leaderboard(results | {"Hopper-v5": newer}, tmp_path / "out", 50, 0.95, 0)
+    message = str(error.value)
+    assert "\n" not in message and "cannot be ranked together" in message
+    assert f"version 1: {results['CartPole-v1']}, {results['Pendulum-v1']}" in message
+    assert f"version 2: {newer}" in message
+    assert not (tmp_path / "out").exists()
+
+
+def test_missing_old_or_partial_results_are_one_line_errors(results, tmp_path: Path):
     with pytest.raises(StoreError, match="results of Hopper-v5 are missing"):
-        read_cells({**results, "Hopper-v5": tmp_path / "nowhere.yaml"})
+        read_inputs({**results, "Hopper-v5": tmp_path / "nowhere.yaml"})
     old = tmp_path / "old.yaml"
     old.write_text(yamlio.dump({"records": [{"kind": "anomaly", "detector": "x", "anomaly": "y"}]}))
     with pytest.raises(StoreError, match="re-run Acrobot-v1's metrics stage"):
-        read_cells({"Acrobot-v1": old})
+        read_inputs({"Acrobot-v1": old})
+    partial = write_results(
+        tmp_path / "d" / "results.yaml", 3, {d: 0.7 for d in DETECTORS}, detection=True
+    )
+    with pytest.raises(StoreError, match="lacks per-episode detection_rate@100"):
+        read_inputs(results | {"Hopper-v5": partial})

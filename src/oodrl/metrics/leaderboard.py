@@ -1,31 +1,110 @@
-"""Cross-environment aggregates of one metric (SPEC §12): the suite's leaderboard.
+"""The suite's leaderboard statistics (SPEC §12, §15, §16), with rliable's definitions
+(Agarwal et al. 2021, "Deep RL at the edge of the statistical precipice").
 
-A *cell* is one (environment, anomaly) pair; in it each detector has one value per evaluation
-episode (matched AUROC by default). Per detector:
+A *cell* is (environment, policy, fault, tier): a policy is one training seed of the
+environment's policy (runs before policy seeds are policy "0"); a tier is an impact tier
+(`mild`, `moderate`, `severe`) or, for results scored at one fixed severity, `headline`.
+A *task* is a cell without its policy, (environment, fault, tier): the policies of a task are
+its *runs*. In each cell a detector has one value per episode (matched AUROC per episode, or
+0/1 per faulty stream for `detection_rate@K`); the *score* of a (run, task) is their mean.
+Per detector, over the tasks of one aggregate:
 
-- the detector × environment table: the mean over that environment's anomalies of the cell means;
-- over all cells: the mean and the interquartile mean (IQM, the mean of the middle 50% of cell
-  means, `scipy.stats.trim_mean(·, 0.25)`), each with a stratified-bootstrap CI: a replicate
-  resamples the episodes within every cell (with replacement), recomputes the cell means and
-  then the aggregate, so cells are never mixed and every cell keeps its weight (Agarwal et al.
-  2021, "Deep RL at the edge of the statistical precipice");
-- the probability of improvement P(A > B): the chance that A's cell mean beats B's on a cell
-  drawn at random (ties count ½), with the same bootstrap for its CI.
+- mean: the mean over tasks of the mean over runs (rliable's `aggregate_mean`);
+- IQM: the 25%-trimmed mean of all (run, task) scores (rliable's `aggregate_iqm`; tasks with
+  more runs put more scores into the pool);
+- optimality gap: 1 − the mean of all (run, task) scores capped at 1 (rliable's
+  `aggregate_optimality_gap` with γ = 1);
+- performance profile: the share of (run, task) scores ≥ τ for τ in [0.5, 1] (rliable counts
+  > τ; ≥ keeps the ceiling visible: at τ = 1 it is the share of perfect scores);
+- P(A > B): per task the Mann-Whitney statistic of A's runs against B's, U / (n_A · n_B) with
+  ties ½, averaged over tasks (rliable's `probability_of_improvement`);
+- a detector × environment table: the mean over an environment's tasks of the task means.
 
-Replicate b draws its indices from ``default_rng([seed, cell number])``, so the draws of a cell
-do not depend on which other cells exist, and every detector of a cell is resampled with the
-same episodes (they are paired: same episodes, same seeds).
+CIs are stratified percentile bootstraps, the strata being the tasks, so tasks are never mixed
+and each keeps its weight. A task with several runs resamples its runs, each detector's
+independently (rliable's `StratifiedBootstrap`, and `StratifiedIndependentBootstrap` for
+P(improvement)). A task with one run cannot resample runs: it resamples its episodes instead,
+every detector of the task with the same episodes (they are paired: same episodes, same
+seeds), as the suite's leaderboard did before policies had seeds. `Aggregate.bootstrap` says
+which one a table used. Task number c (in sorted order) draws from `default_rng([seed, c])`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+import hashlib
+import json
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
 
-#: One (environment, anomaly) pair.
-Cell = tuple[str, str]
+if TYPE_CHECKING:
+    from oodrl.config import Params
+
+
+class Cell(NamedTuple):
+    """One (environment, policy, fault, tier)."""
+
+    environment: str
+    policy: str
+    fault: str
+    tier: str
+
+
+#: A cell without its policy: (environment, fault, tier).
+Task = tuple[str, str, str]
+#: cell → detector → per-episode values.
+CellValues = Mapping[Cell, Mapping[str, Sequence[float]]]
+
+#: Impact tiers, the hardest to detect first (SPEC §15).
+TIERS = ("mild", "moderate", "severe")
+#: The tier of results scored at one fixed severity (the protocol before impact tiers).
+HEADLINE_TIER = "headline"
+#: The policy of an environment that has one (results before policy seeds).
+FIRST_POLICY = "0"
+FAULT_FAMILIES: dict[str, tuple[str, ...]] = {
+    "observation": (
+        "gaussian_state_noise",
+        "state_feature_dropout",
+        "correlation_break",
+        "regime_switch",
+        "observation_delay",
+    ),
+    "action": ("stuck_actuator", "action_conditioned_dynamics"),
+    "dynamics": ("dynamics_scaling", "gradual_drift"),
+}
+#: The family of a fault outside the built-in ones (a plugin injector).
+OTHER_FAMILY = "other"
+#: The thresholds τ of the performance profiles.
+PROFILE_TAUS: tuple[float, ...] = tuple(round(0.5 + 0.01 * i, 2) for i in range(51))
+#: Detectors that see only a trivial signal (the time index; the episode return).
+TRIVIAL_DETECTORS = ("time_index", "episode_return")
+#: A task is flagged when a trivial detector's matched AUROC there reaches this.
+TRIVIAL_THRESHOLD = 0.9
+#: The metric every results file holds per episode.
+MATCHED_AUROC = "matched_auroc"
+
+
+def fault_family(fault: str) -> str:
+    """observation, action or dynamics (SPEC §15); `other` for a fault outside them."""
+    return next((f for f, faults in FAULT_FAMILIES.items() if fault in faults), OTHER_FAMILY)
+
+
+def tier_order(tiers: Iterable[str]) -> list[str]:
+    """Tiers mild first, then moderate, severe, headline, then any other by name."""
+    known = (*TIERS, HEADLINE_TIER)
+    return sorted(set(tiers), key=lambda t: (known.index(t) if t in known else len(known), t))
+
+
+def metric_order(metrics: Iterable[str]) -> list[str]:
+    """`detection_rate@K` metrics first (the operating point people deploy), then the rest."""
+    return sorted(set(metrics), key=lambda m: (not m.startswith("detection_rate"), m))
+
+
+def policy_key(policy: str) -> tuple[int, int, str]:
+    """Numbered policies in numeric order ("2" before "10"), then named ones."""
+    return (0, int(policy), "") if policy.isdigit() else (1, 0, policy)
 
 
 @dataclass(frozen=True)
@@ -40,87 +119,373 @@ class Interval:
         return {k: round(float(v), decimals) + 0.0 for k, v in vars(self).items()}
 
 
+#: `Aggregate.bootstrap` when every task resamples its runs / its episodes.
+BOOTSTRAP_RUNS = "runs"
+BOOTSTRAP_EPISODES = "episodes"
+
+
 @dataclass(frozen=True)
-class Leaderboard:
+class Aggregate:
+    """One metric aggregated over a set of tasks (see the module doc)."""
+
     detectors: tuple[str, ...]
-    environments: tuple[str, ...]
-    #: detector → environment → mean over that environment's anomalies of the cell means.
+    tasks: tuple[Task, ...]
+    #: The number of runs (policies) of each task, in `tasks` order.
+    runs: tuple[int, ...]
+    #: "runs", "episodes", or "runs; episodes in k of n cells with one run".
+    bootstrap: str
     table: dict[str, dict[str, float]]
     mean: dict[str, Interval]
     iqm: dict[str, Interval]
-    #: (A, B) → P(A's cell mean > B's) over cells, ties ½.
+    optimality_gap: dict[str, Interval]
+    #: (A, B) → P(A > B), the Mann-Whitney statistic over runs averaged over tasks.
     improvement: dict[tuple[str, str], Interval]
-    n_cells: int
+    taus: tuple[float, ...]
+    #: detector → the share of (run, task) scores ≥ τ, one Interval per τ of `taus`.
+    profile: dict[str, tuple[Interval, ...]]
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.tasks)
+
+    @property
+    def n_scores(self) -> int:
+        return sum(self.runs)
+
+    @property
+    def environments(self) -> tuple[str, ...]:
+        return tuple(sorted({task[0] for task in self.tasks}))
+
+    def ranked(self) -> list[str]:
+        """Detectors by IQM, best first (ties by name)."""
+        return sorted(self.detectors, key=lambda d: (-self.iqm[d].value, d))
 
 
-def interquartile_mean(values: np.ndarray, axis: int = -1) -> np.ndarray:
+def interquartile_mean(values: np.ndarray, axis: int | None = -1) -> np.ndarray:
     """The mean of the middle 50% (25% trimmed from each end), as scipy's trim_mean."""
     from scipy.stats import trim_mean
 
     return trim_mean(values, 0.25, axis=axis)
 
 
-def leaderboard(
-    cells: Mapping[Cell, Mapping[str, Sequence[float]]],
+def _mann_whitney(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Share of pairs with a > b over the last axes (a: (..., n_a), b: (..., n_b)), ties ½."""
+    greater = (a[..., :, None] > b[..., None, :]).mean(axis=(-2, -1))
+    equal = (a[..., :, None] == b[..., None, :]).mean(axis=(-2, -1))
+    return greater + 0.5 * equal
+
+
+def _task_runs(
+    cells: CellValues, detectors: tuple[str, ...]
+) -> dict[Task, list[dict[str, np.ndarray]]]:
+    """Task → its runs in policy order, each detector → per-episode values."""
+    runs: dict[Task, list[tuple[str, dict[str, np.ndarray]]]] = {}
+    for cell, values in cells.items():
+        cell = Cell(*cell)
+        if tuple(sorted(values)) != detectors:
+            raise ValueError(f"cell {tuple(cell)} has detectors {sorted(values)}, not {detectors}")
+        episodes = {d: np.asarray(values[d], dtype=np.float64) for d in detectors}
+        for d, v in episodes.items():
+            if v.ndim != 1 or v.size == 0 or not np.isfinite(v).all():
+                raise ValueError(f"cell {tuple(cell)}: {d} needs finite per-episode values")
+        task = (cell.environment, cell.fault, cell.tier)
+        runs.setdefault(task, []).append((cell.policy, episodes))
+    return {
+        task: [v for _, v in sorted(found, key=lambda pv: policy_key(pv[0]))]
+        for task, found in sorted(runs.items())
+    }
+
+
+def _replicates(
+    runs: list[dict[str, np.ndarray]], detectors: tuple[str, ...], n_boot: int, rng
+) -> np.ndarray:
+    """(detectors, n_boot, runs) replicate run scores of one task (see the module doc)."""
+    if len(runs) == 1:
+        sizes = {runs[0][d].size for d in detectors}
+        if len(sizes) != 1:
+            raise ValueError(
+                f"one-run cells need one episode count for every detector; got {sizes}"
+            )
+        episodes = np.stack([runs[0][d] for d in detectors])  # (detectors, episodes)
+        n = episodes.shape[1]
+        index = rng.integers(0, n, size=(n_boot, n))
+        return episodes[:, index].mean(axis=2)[:, :, None]
+    scores = np.array([[run[d].mean() for run in runs] for d in detectors])  # (detectors, runs)
+    index = rng.integers(0, len(runs), size=(len(detectors), n_boot, len(runs)))
+    return scores[np.arange(len(detectors))[:, None, None], index]
+
+
+def aggregate(
+    cells: CellValues,
     n_boot: int = 1000,
     ci: float = 0.95,
     seed: int = 0,
-) -> Leaderboard:
-    """Aggregate per-episode values ``cells[(env, anomaly)][detector]`` (see the module doc).
+    taus: Sequence[float] = PROFILE_TAUS,
+) -> Aggregate:
+    """Aggregate per-episode values ``cells[Cell(env, policy, fault, tier)][detector]``.
 
-    Every cell must hold every detector, with the same number of episodes for each detector.
+    Every cell must hold every detector; a task with one run needs the same number of
+    episodes for each detector (they are resampled together).
     """
-    keys = sorted(cells)
-    if not keys:
+    if not cells:
         raise ValueError("no cells to aggregate")
-    detectors = tuple(sorted(cells[keys[0]]))
-    for key in keys:
-        if tuple(sorted(cells[key])) != detectors:
-            raise ValueError(f"cell {key} has detectors {sorted(cells[key])}, not {detectors}")
-    environments = tuple(sorted({env for env, _ in keys}))
-    values = [np.array([cells[key][d] for d in detectors], dtype=np.float64) for key in keys]
-    point = np.stack([v.mean(axis=1) for v in values], axis=1)  # (detectors, cells)
-    replicates = _stratified_replicates(values, n_boot, seed)  # (n_boot, detectors, cells)
+    detectors = tuple(sorted(next(iter(cells.values()))))
+    by_task = _task_runs(cells, detectors)
+    tasks = tuple(by_task)
+    runs = tuple(len(by_task[t]) for t in tasks)
+    scores = [np.array([[r[d].mean() for r in by_task[t]] for d in detectors]) for t in tasks]
+    replicates = [
+        _replicates(by_task[t], detectors, n_boot, np.random.default_rng([seed, c]))
+        for c, t in enumerate(tasks)
+    ]
+    # The pool of (run, task) scores, run-major: with equal runs, rliable's (runs × tasks) in C
+    # order, so the IQM is computed on the same sequence of numbers.
+    pool = [(r, c) for r in range(max(runs)) for c in range(len(tasks)) if r < runs[c]]
+    point_pool = np.stack([scores[c][:, r] for r, c in pool], axis=-1)  # (D, P)
+    replicate_pool = np.stack([replicates[c][:, :, r] for r, c in pool], axis=-1)  # (D, B, P)
+    task_means = np.stack([s.mean(axis=1) for s in scores], axis=-1)  # (D, T)
+    replicate_task_means = np.stack([r.mean(axis=2) for r in replicates], axis=-1)  # (D, B, T)
 
     def interval(estimate: float, draws: np.ndarray) -> Interval:
         low, high = np.quantile(draws, [(1 - ci) / 2, (1 + ci) / 2])
         return Interval(float(estimate), float(low), float(high))
 
+    def gap(pooled: np.ndarray) -> np.ndarray:
+        return 1.0 - np.minimum(pooled, 1.0).mean(axis=-1)
+
+    environments = sorted({t[0] for t in tasks})
     table = {
         d: {
-            env: float(np.mean([point[i, j] for j, key in enumerate(keys) if key[0] == env]))
+            env: float(np.mean([task_means[i, c] for c, t in enumerate(tasks) if t[0] == env]))
             for env in environments
         }
         for i, d in enumerate(detectors)
     }
     mean = {
-        d: interval(point[i].mean(), replicates[:, i].mean(axis=1)) for i, d in enumerate(detectors)
-    }
-    iqm = {
-        d: interval(interquartile_mean(point[i]), interquartile_mean(replicates[:, i], axis=1))
+        d: interval(task_means[i].mean(), replicate_task_means[i].mean(axis=1))
         for i, d in enumerate(detectors)
     }
+    iqm = {
+        d: interval(interquartile_mean(point_pool[i]), interquartile_mean(replicate_pool[i], 1))
+        for i, d in enumerate(detectors)
+    }
+    optimality_gap = {
+        d: interval(gap(point_pool[i]), gap(replicate_pool[i])) for i, d in enumerate(detectors)
+    }
+    point_wins = np.stack(
+        [_mann_whitney(s[:, None, :], s[None, :, :]) for s in scores], axis=-1
+    )  # (D, D, T)
+    replicate_wins = sum(
+        _mann_whitney(r[:, None, :, :], r[None, :, :, :]) for r in replicates
+    ) / len(tasks)  # (D, D, B)
     improvement = {
-        (a, b): interval(
-            _beats(point[i], point[j]), _beats(replicates[:, i], replicates[:, j], axis=1)
-        )
+        (a, b): interval(point_wins[i, j].mean(), replicate_wins[i, j])
         for i, a in enumerate(detectors)
         for j, b in enumerate(detectors)
         if i != j
     }
-    return Leaderboard(detectors, environments, table, mean, iqm, improvement, len(keys))
+    profile = {
+        d: tuple(
+            interval((point_pool[i] >= tau).mean(), (replicate_pool[i] >= tau).mean(axis=-1))
+            for tau in taus
+        )
+        for i, d in enumerate(detectors)
+    }
+    return Aggregate(
+        detectors, tasks, runs, _bootstrap_name(runs), table, mean, iqm, optimality_gap,
+        improvement, tuple(float(t) for t in taus), profile,
+    )  # fmt: skip
 
 
-def _beats(a: np.ndarray, b: np.ndarray, axis: int = -1) -> np.ndarray:
-    """Mean over cells of 1 where a > b, ½ where equal, 0 where a < b."""
-    return ((a > b) + 0.5 * (a == b)).mean(axis=axis)
+def _bootstrap_name(runs: Sequence[int]) -> str:
+    single = sum(1 for r in runs if r == 1)
+    if single == 0:
+        return BOOTSTRAP_RUNS
+    if single == len(runs):
+        return BOOTSTRAP_EPISODES
+    return f"{BOOTSTRAP_RUNS}; {BOOTSTRAP_EPISODES} in {single} of {len(runs)} cells with one run"
 
 
-def _stratified_replicates(values: list[np.ndarray], n_boot: int, seed: int) -> np.ndarray:
-    """Cell means (n_boot, detectors, cells) with episodes resampled within each cell."""
-    out = np.empty((n_boot, values[0].shape[0], len(values)))
-    for c, cell in enumerate(values):
-        n = cell.shape[1]
-        index = np.random.default_rng([seed, c]).integers(0, n, size=(n_boot, n))
-        out[:, :, c] = cell[:, index].mean(axis=2).T
-    return out
+@dataclass(frozen=True)
+class Stability:
+    """How stable the ranking is across policies (SPEC §16): each policy's own ranking by the
+    IQM of its cells' scores, its winner, and Kendall's τ-b between every two policies."""
+
+    policies: tuple[str, ...]
+    iqm: dict[str, dict[str, float]]
+    winners: dict[str, str]
+    #: (p, q) → Kendall's τ between the detectors' IQMs under p and under q (p before q).
+    kendall_tau: dict[tuple[str, str], float]
+
+    @property
+    def mean_tau(self) -> float | None:
+        taus = [t for t in self.kendall_tau.values() if np.isfinite(t)]
+        return float(np.mean(taus)) if taus else None
+
+
+def ranking_stability(cells: CellValues) -> Stability:
+    """Per policy, the detectors' IQM over that policy's cells, the winner, and Kendall's τ."""
+    from scipy.stats import kendalltau
+
+    policies = tuple(sorted({Cell(*c).policy for c in cells}, key=policy_key))
+    detectors = sorted(next(iter(cells.values())))
+    iqm = {}
+    for p in policies:
+        mine = [values for cell, values in cells.items() if Cell(*cell).policy == p]
+        scores = np.array([[np.mean(values[d]) for values in mine] for d in detectors])
+        iqm[p] = {d: float(interquartile_mean(scores[i])) for i, d in enumerate(detectors)}
+    winners = {p: min(detectors, key=lambda d, p=p: (-iqm[p][d], d)) for p in policies}
+    kendall = {
+        (p, q): float(
+            kendalltau([iqm[p][d] for d in detectors], [iqm[q][d] for d in detectors]).statistic
+        )
+        for i, p in enumerate(policies)
+        for q in policies[i + 1 :]
+    }
+    return Stability(policies, iqm, winners, kendall)
+
+
+def trivial_flags(
+    auroc_cells: CellValues,
+    detectors: Sequence[str] = TRIVIAL_DETECTORS,
+    threshold: float = TRIVIAL_THRESHOLD,
+) -> dict[Task, dict[str, float]]:
+    """Tasks a trivial signal already detects → {trivial detector: its score there}.
+
+    A task is flagged when a trivial detector present in the results reaches `threshold` on
+    the task's matched AUROC (the mean over runs of the per-episode means), i.e. when knowing
+    the time step alone, or the episode's return, already tells the faulty stream apart.
+    """
+    runs: dict[Task, dict[str, list[float]]] = {}
+    for cell, values in auroc_cells.items():
+        cell = Cell(*cell)
+        task = (cell.environment, cell.fault, cell.tier)
+        for d in detectors:
+            if d in values:
+                runs.setdefault(task, {}).setdefault(d, []).append(float(np.mean(values[d])))
+    flagged: dict[Task, dict[str, float]] = {}
+    for task, found in sorted(runs.items()):
+        over = {d: float(np.mean(v)) for d, v in found.items() if np.mean(v) >= threshold}
+        if over:
+            flagged[task] = over
+    return flagged
+
+
+@dataclass(frozen=True)
+class Board:
+    """Leaderboard v2: every (metric, tier) aggregated over all its tasks and per fault
+    family, the ranking's stability across policies, and the trivially detected tasks."""
+
+    metrics: tuple[str, ...]
+    tiers: tuple[str, ...]
+    overall: dict[tuple[str, str], Aggregate]
+    families: dict[tuple[str, str], dict[str, Aggregate]]
+    stability: dict[tuple[str, str], Stability]
+    flagged: dict[Task, dict[str, float]]
+    #: (metric, tier) → the aggregate without the flagged tasks, where some but not all are.
+    unflagged: dict[tuple[str, str], Aggregate]
+
+    @property
+    def lead(self) -> tuple[str, str]:
+        """The (metric, tier) the leaderboard leads with: the first metric at the first tier."""
+        return self.metrics[0], self.tiers[0]
+
+
+def build_board(
+    cells_by_metric: Mapping[str, CellValues],
+    *,
+    n_boot: int = 1000,
+    ci: float = 0.95,
+    seed: int = 0,
+    flagged: Mapping[Task, Mapping[str, float]] | None = None,
+    taus: Sequence[float] = PROFILE_TAUS,
+) -> Board:
+    """Aggregate every metric per tier and per (tier, fault family).
+
+    `flagged` defaults to `trivial_flags` of the matched AUROC cells.
+    """
+    if not cells_by_metric or not any(cells_by_metric.values()):
+        raise ValueError("no cells to aggregate")
+    metrics = tuple(metric_order(cells_by_metric))
+    tiers = tuple(tier_order(Cell(*c).tier for m in metrics for c in cells_by_metric[m]))
+    if flagged is None:
+        flagged = trivial_flags(cells_by_metric.get(MATCHED_AUROC, {}))
+    flagged = {task: dict(v) for task, v in sorted(flagged.items())}
+    options = {"n_boot": n_boot, "ci": ci, "seed": seed, "taus": taus}
+    overall, families, stability, unflagged = {}, {}, {}, {}
+    for metric in metrics:
+        for tier in tiers:
+            cells = {
+                Cell(*c): v for c, v in cells_by_metric[metric].items() if Cell(*c).tier == tier
+            }
+            if not cells:
+                continue
+            key = (metric, tier)
+            overall[key] = aggregate(cells, **options)
+            stability[key] = ranking_stability(cells)
+            by_family: dict[str, dict[Cell, Any]] = {}
+            for cell, values in cells.items():
+                by_family.setdefault(fault_family(cell.fault), {})[cell] = values
+            families[key] = {
+                family: aggregate(by_family[family], **options)
+                for family in (*FAULT_FAMILIES, OTHER_FAMILY)
+                if family in by_family
+            }
+            kept = {
+                c: v for c, v in cells.items() if (c.environment, c.fault, c.tier) not in flagged
+            }
+            if kept and len(kept) < len(cells):
+                unflagged[key] = aggregate(kept, **options)
+    return Board(metrics, tiers, overall, families, stability, flagged, unflagged)
+
+
+#: The protocol a results file follows: 2 = SPEC §15/§16 (impact tiers, operating points,
+#: policy seeds, trivial-signal baselines). Bump it whenever results stop being comparable
+#: with the previous version's.
+PROTOCOL_VERSION = 2
+#: What a results file without a stamp is read as: the protocol before stamps, SPEC §3-§12.
+UNSTAMPED_VERSION = 1
+
+
+def params_hash(params: Params) -> str:
+    """sha256 of the resolved params (defaults filled in, `extends` merged) as canonical JSON.
+
+    The executor block is left out: results are identical for any worker count.
+    """
+    resolved = params.model_dump(mode="json", exclude={"executor"})
+    text = json.dumps(resolved, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def protocol_stamp(params: Params) -> dict[str, Any]:
+    """The keys every results file carries: its protocol version and its params' hash."""
+    return {"protocol_version": PROTOCOL_VERSION, "params_hash": params_hash(params)}
+
+
+def protocol_version(document: Mapping[str, Any]) -> int:
+    """The protocol version of a results document; unstamped files are `UNSTAMPED_VERSION`."""
+    version = document.get("protocol_version", UNSTAMPED_VERSION)
+    if isinstance(version, bool) or not isinstance(version, int):
+        raise ValueError(f"protocol_version must be an integer; got {version!r}")
+    return version
+
+
+def one_protocol_version(documents: Mapping[str, Mapping[str, Any]]) -> int:
+    """The one protocol version of every document (name → document), or a one-line error."""
+    from oodrl.errors import StoreError
+
+    versions: dict[int, list[str]] = {}
+    for name, document in documents.items():
+        try:
+            versions.setdefault(protocol_version(document), []).append(str(name))
+        except ValueError as error:
+            raise StoreError(f"{name}: {error}.") from None
+    if len(versions) > 1:
+        parts = "; ".join(
+            f"version {v}: {', '.join(sorted(names))}" for v, names in sorted(versions.items())
+        )
+        raise StoreError(
+            f"Results of different protocol versions cannot be ranked together ({parts}); "
+            f"re-run the metrics stage of the older pipelines."
+        )
+    return next(iter(versions), PROTOCOL_VERSION)

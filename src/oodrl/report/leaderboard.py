@@ -1,149 +1,510 @@
-"""The suite's cross-environment report (SPEC §12): tables, a metrics file and two figures.
+"""The suite's leaderboard v2 (SPEC §12, §15, §16): tables, a metrics file and one figure.
 
-Reads each environment's ``results.yaml`` (headline records keep their per-episode matched
-AUROC) and aggregates them with :func:`oodrl.metrics.leaderboard.leaderboard`.
+Reads each (environment, policy)'s ``results.yaml``: anomaly records keep per-episode values
+of their metrics under ``episodes`` (matched AUROC always; ``detection_rate@K`` as 0/1 per
+faulty stream where the metrics stage computes operating points), and name their ``tier``
+(records without one are scored at the headline severity: tier ``headline``). A record's
+``operating_point.alpha`` is the false-alarm budget of its detection rate; a document's
+``minimum_detectable_impact`` maps detector → fault → criterion → the smallest return loss
+1 − R̃ at which the criterion is met, or "beyond range". Every file carries a protocol version
+(`oodrl.metrics.leaderboard.protocol_stamp`; unstamped files are version 1) and files of two
+versions are refused. Aggregation: `oodrl.metrics.leaderboard.build_board`.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from oodrl import yamlio
 from oodrl.fileio import atomic_write_text
-from oodrl.metrics.leaderboard import Cell, Leaderboard, leaderboard
+from oodrl.metrics.leaderboard import (
+    FIRST_POLICY,
+    HEADLINE_TIER,
+    MATCHED_AUROC,
+    TRIVIAL_DETECTORS,
+    TRIVIAL_THRESHOLD,
+    UNSTAMPED_VERSION,
+    Aggregate,
+    Board,
+    Cell,
+    Interval,
+    build_board,
+    one_protocol_version,
+    policy_key,
+)
 from oodrl.report.tables import record_injector
 
-METRIC = "matched_auroc"
+#: Where a record keeps the false-alarm budget α of its operating point.
+OPERATING_POINT = "operating_point"
+#: A results document's minimum-detectable-impact section.
+MINIMUM_DETECTABLE_IMPACT = "minimum_detectable_impact"
+BEYOND_RANGE = "beyond range"
+#: Human names of the leaderboard's metrics (others print as named).
+METRIC_LABELS = {MATCHED_AUROC: "matched AUROC"}
+#: The performance-profile thresholds the tables quote (the figure draws every τ).
+QUOTED_TAUS = (0.9, 1.0)
+#: Where the log axis of the optimality-gap figure draws a gap of exactly 0.
+GAP_FLOOR = 1e-4
+
+#: Results files by (environment, policy), or by environment for its policy "0".
+ResultsPaths = Mapping[tuple[str, str] | str, Path]
+#: criterion → (environment, policy, fault) → detector → return loss, or "beyond range".
+MinimumDetectableImpact = dict[str, dict[tuple[str, str, str], dict[str, float | str]]]
 
 
-def read_cells(results: Mapping[str, Path]) -> dict[Cell, dict[str, list[float]]]:
-    """(environment, anomaly) → detector → per-episode matched AUROC, from each results file."""
+@dataclass(frozen=True)
+class Inputs:
+    """What the leaderboard reads from the results files."""
+
+    #: metric → cell → detector → per-episode values.
+    cells: dict[str, dict[Cell, dict[str, list[float]]]]
+    protocol_version: int
+    #: The false-alarm budget of `detection_rate@K`, when the records name one α.
+    alpha: float | None = None
+    minimum_detectable_impact: MinimumDetectableImpact = field(default_factory=dict)
+
+
+def _run_key(key: tuple[str, str] | str) -> tuple[str, str]:
+    return (key, FIRST_POLICY) if isinstance(key, str) else (str(key[0]), str(key[1]))
+
+
+def read_inputs(results: ResultsPaths) -> Inputs:
+    """Every results file's per-episode values by metric and cell, its version, α and MDI."""
     from oodrl.errors import StoreError
 
-    cells: dict[Cell, dict[str, list[float]]] = {}
-    for env_id, path in results.items():
+    documents: dict[str, Any] = {}
+    cells: dict[str, dict[Cell, dict[str, list[float]]]] = {}
+    metrics_of: dict[tuple[str, Cell, str], set[str]] = {}
+    alphas: set[float] = set()
+    mdi: MinimumDetectableImpact = {}
+    for key, path in results.items():
+        env_id, policy = _run_key(key)
         if not Path(path).is_file():
             raise StoreError(f"{path}: results of {env_id} are missing; build its pipeline first.")
-        for record in yamlio.load(Path(path).read_text())["records"]:
+        document = yamlio.load(Path(path).read_text())
+        documents[str(path)] = document
+        for record in document["records"]:
             if record["kind"] != "anomaly":
                 continue
-            episodes = record.get("episodes", {}).get(METRIC)
-            if episodes is None:
+            episodes = record.get("episodes") or {}
+            if MATCHED_AUROC not in episodes:
                 raise StoreError(
-                    f"{path}: records lack per-episode {METRIC}; re-run {env_id}'s metrics stage."
+                    f"{path}: records lack per-episode {MATCHED_AUROC}; re-run {env_id}'s "
+                    f"metrics stage."
                 )
-            cells.setdefault((env_id, record_injector(record)), {})[record["detector"]] = episodes
-    return cells
+            cell = Cell(env_id, policy, record_injector(record), record.get("tier", HEADLINE_TIER))
+            detector = record["detector"]
+            if (str(path), cell, detector) in metrics_of:
+                raise StoreError(f"{path}: two records of {detector} on {tuple(cell)}.")
+            metrics_of[(str(path), cell, detector)] = set(episodes)
+            for metric, values in episodes.items():
+                cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
+            alpha = (record.get(OPERATING_POINT) or {}).get("alpha")
+            if alpha is not None:
+                alphas.add(float(alpha))
+        for detector, faults in (document.get(MINIMUM_DETECTABLE_IMPACT) or {}).items():
+            for fault, criteria in faults.items():
+                for criterion, value in criteria.items():
+                    row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
+                    row[detector] = value
+    every = set().union(*metrics_of.values()) if metrics_of else set()
+    for (path, cell, detector), found in metrics_of.items():
+        if found != every:
+            raise StoreError(
+                f"{path}: {detector} on {tuple(cell)} lacks per-episode "
+                f"{', '.join(sorted(every - found))}, which other records have; re-run its "
+                f"metrics stage."
+            )
+    version = one_protocol_version(documents)
+    return Inputs(cells, version, next(iter(alphas)) if len(alphas) == 1 else None, mdi)
 
 
-def board_mapping(board: Leaderboard) -> dict[str, Any]:
-    """Everything the leaderboard computed, as plain data (sorted keys when dumped)."""
+def metric_label(metric: str, alpha: float | None = None) -> str:
+    label = METRIC_LABELS.get(metric, metric)
+    if metric.startswith("detection_rate") and alpha is not None:
+        label += f" at α = {alpha:g}"
+    return label
+
+
+def _interval(value: Interval) -> str:
+    return f"{value.value:.3f} [{value.ci_low:.3f}, {value.ci_high:.3f}]"
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[str]]) -> list[str]:
+    """A Markdown table, first column left, the rest right."""
+    lines = ["| " + " | ".join(header) + " |", "|---|" + "---:|" * (len(header) - 1)]
+    return lines + ["| " + " | ".join(row) + " |" for row in rows]
+
+
+def _bootstrap_note(board: Aggregate) -> str:
+    if board.bootstrap == "episodes":
+        return "episodes resampled within each cell (one run per cell)"
+    if board.bootstrap == "runs":
+        return "policies (runs) resampled within each cell"
+    return f"policies (runs) resampled within each cell; {board.bootstrap.split('; ', 1)[1]}"
+
+
+def _runs_note(board: Aggregate) -> str:
+    low, high = min(board.runs), max(board.runs)
+    if high == 1:
+        return "one policy per cell"
+    return f"{low} policies per cell" if low == high else f"{low}–{high} policies per cell"
+
+
+def _section(board: Board, metric: str, tier: str, alpha: float | None) -> list[str]:
+    overall = board.overall[(metric, tier)]
+    unflagged = board.unflagged.get((metric, tier))
+    label = metric_label(metric, alpha)
+    order = overall.ranked()
+    envs = list(overall.environments)
+    header = ["detector", *envs, "IQM [95% CI]", "mean [95% CI]"]
+    if unflagged is not None:
+        header.append(f"IQM without flagged cells ({unflagged.n_cells}) [95% CI]")
+    rows = []
+    for d in order:
+        row = [d, *(f"{overall.table[d][e]:.3f}" for e in envs)]
+        row += [_interval(overall.iqm[d]), _interval(overall.mean[d])]
+        if unflagged is not None:
+            row.append(_interval(unflagged.iqm[d]))
+        rows.append(row)
+    flagged = sum(1 for task in overall.tasks if task in board.flagged)
+    lines = [
+        f"## Tier `{tier}`: mean {label} per detector and environment ({overall.n_cells} cells)",
+        "",
+        *_table(header, rows),
+        "",
+        f"IQM: mean of the middle 50% of (policy, cell) scores ({_runs_note(overall)}); "
+        f"CIs: stratified bootstrap, {_bootstrap_note(overall)}. "
+        f"Cells a trivial signal detects: {flagged} of {overall.n_cells}.",
+        "",
+    ]
+    families = board.families[(metric, tier)]
+    names = list(families)
+    lines += [f"### By fault family (IQM of {label} [95% CI])", ""]
+    fam_header = ["detector", *(f"{f} ({families[f].n_cells} cells)" for f in names)]
+    fam_rows = [[d, *(_interval(families[f].iqm[d]) for f in names)] for d in order]
+    lines += [*_table(fam_header, fam_rows), ""]
+    quoted = [t for t in QUOTED_TAUS if t in overall.taus]
+    lines += [
+        "### Optimality gap and performance profile",
+        "",
+        *_table(
+            [
+                "detector",
+                f"optimality gap 1 − {label} [95% CI]",
+                *(f"share of scores ≥ {t:g} [95% CI]" for t in quoted),
+            ],
+            [
+                [
+                    d,
+                    _interval(overall.optimality_gap[d]),
+                    *(_interval(overall.profile[d][overall.taus.index(t)]) for t in quoted),
+                ]
+                for d in order
+            ],
+        ),
+        "",
+        "### Probability that the row detector beats the column detector on a random cell",
+        "",
+        *_table(
+            ["", *order],
+            [
+                [a, *("—" if a == b else f"{overall.improvement[(a, b)].value:.2f}" for b in order)]
+                for a in order
+            ],
+        ),
+        "",
+        "P(row > column): per cell the Mann-Whitney statistic of the row's policies against the "
+        "column's (ties ½), averaged over cells.",
+        "",
+        *_stability_lines(board, metric, tier),
+    ]
+    return lines
+
+
+def _stability_lines(board: Board, metric: str, tier: str) -> list[str]:
+    stability = board.stability[(metric, tier)]
+    lines = ["### Ranking stability across policies", ""]
+    if len(stability.policies) == 1:
+        return [*lines, f"One policy (policy {stability.policies[0]}): nothing to compare.", ""]
+    rows = [
+        [f"policy {p}", stability.winners[p], f"{stability.iqm[p][stability.winners[p]]:.3f}"]
+        for p in stability.policies
+    ]
+    taus = ", ".join(f"{p}–{q}: {t:.2f}" for (p, q), t in stability.kendall_tau.items())
+    mean = stability.mean_tau
+    return [
+        *lines,
+        *_table(["policy", "winner", "its IQM"], rows),
+        "",
+        f"Kendall τ between per-policy rankings (by IQM): {taus}"
+        + (f"; mean {mean:.2f}." if mean is not None else "."),
+        "",
+    ]
+
+
+def _flag_lines(board: Board, detectors: Sequence[str]) -> list[str]:
+    present = [d for d in TRIVIAL_DETECTORS if d in detectors]
+    lines = ["## Cells a trivial signal already detects", ""]
+    rule = (
+        f"Rule: a cell is flagged when a trivial-signal detector ({', '.join(TRIVIAL_DETECTORS)}) "
+        f"reaches matched AUROC ≥ {TRIVIAL_THRESHOLD} there (mean over its policies)."
+    )
+    if not present:
+        return [*lines, rule + " None of them is in the results: no cell is flagged.", ""]
+    if not board.flagged:
+        return [*lines, rule + " No cell is flagged.", ""]
+    rows = [
+        [f"{env} / {fault} / {tier}", ", ".join(f"{d} {v:.3f}" for d, v in signals.items())]
+        for (env, fault, tier), signals in board.flagged.items()
+    ]
+    return [*lines, rule, "", *_table(["cell", "trivial signal (matched AUROC)"], rows), ""]
+
+
+def _mdi_lines(mdi: MinimumDetectableImpact) -> list[str]:
+    lines = []
+    for criterion, rows in sorted(mdi.items()):
+        detectors = sorted({d for row in rows.values() for d in row})
+        several = len({p for _, p, _ in rows}) > 1
+        table_rows = []
+        for (env, policy, fault), values in sorted(rows.items()):
+            name = f"{env} / policy {policy} / {fault}" if several else f"{env} / {fault}"
+            cells = []
+            for d in detectors:
+                value = values.get(d)
+                if value is None:
+                    cells.append("—")
+                elif value == BEYOND_RANGE:
+                    cells.append(BEYOND_RANGE)
+                else:
+                    cells.append(f"{100 * float(value):.1f}%")
+            table_rows.append([name, *cells])
+        lines += [
+            f"## Minimum detectable impact: the smallest return loss at which {criterion}",
+            "",
+            *_table(["environment / fault", *detectors], table_rows),
+            "",
+        ]
+    return lines
+
+
+def markdown(
+    board: Board,
+    *,
+    protocol_version: int,
+    alpha: float | None = None,
+    minimum_detectable_impact: MinimumDetectableImpact | None = None,
+) -> str:
+    """leaderboard.md: the lead (metric, tier) first, then every other, then flags and MDI."""
+    lead = board.overall[board.lead]
+    policies = sorted({p for s in board.stability.values() for p in s.policies}, key=policy_key)
+    stamp = (
+        f"{protocol_version} (unstamped results)"
+        if protocol_version == UNSTAMPED_VERSION
+        else str(protocol_version)
+    )
+    lines = [
+        "# Suite leaderboard",
+        "",
+        f"Protocol version {stamp}; {len(lead.environments)} environments; "
+        f"{len(policies)} {'policy' if len(policies) == 1 else 'policies'} "
+        f"({', '.join(policies)}); tiers {', '.join(board.tiers)}; metrics "
+        f"{', '.join(metric_label(m, alpha) for m in board.metrics)}.",
+        "",
+    ]
+    keys = [board.lead] + [k for k in board.overall if k != board.lead]
+    for metric, tier in sorted(keys, key=lambda k: (board.tiers.index(k[1]), keys.index(k))):
+        lines += _section(board, metric, tier, alpha)
+    lines += _flag_lines(board, lead.detectors)
+    lines += _mdi_lines(minimum_detectable_impact or {})
+    return "\n".join(lines).rstrip("\n") + "\n"
+
+
+def _aggregate_mapping(board: Aggregate) -> dict[str, Any]:
+    order = board.ranked()
     return {
-        "metric": METRIC,
+        "bootstrap": board.bootstrap,
         "n_cells": board.n_cells,
+        "runs_per_cell": {"min": min(board.runs), "max": max(board.runs)},
         "environments": list(board.environments),
+        "ranking": order,
         "table": {d: {e: round(v, 6) for e, v in row.items()} for d, row in board.table.items()},
         "mean": {d: board.mean[d].as_dict() for d in board.detectors},
         "iqm": {d: board.iqm[d].as_dict() for d in board.detectors},
+        "optimality_gap": {d: board.optimality_gap[d].as_dict() for d in board.detectors},
         "probability_of_improvement": {
             a: {b: board.improvement[(a, b)].as_dict() for b in board.detectors if b != a}
             for a in board.detectors
         },
+        "performance_profile": {
+            "taus": list(board.taus),
+            **{
+                d: {
+                    k: [p.as_dict()[k] for p in board.profile[d]]
+                    for k in ("value", "ci_low", "ci_high")
+                }
+                for d in board.detectors
+            },
+        },
     }
 
 
-def ranked(board: Leaderboard) -> list[str]:
-    """Detectors by IQM, best first (ties by name)."""
-    return sorted(board.detectors, key=lambda d: (-board.iqm[d].value, d))
+def board_mapping(
+    board: Board,
+    *,
+    protocol_version: int,
+    alpha: float | None = None,
+    minimum_detectable_impact: MinimumDetectableImpact | None = None,
+) -> dict[str, Any]:
+    """Everything the leaderboard computed, as plain data (sorted keys when dumped)."""
+    boards: dict[str, dict[str, Any]] = {}
+    for (metric, tier), overall in board.overall.items():
+        stability = board.stability[(metric, tier)]
+        entry = _aggregate_mapping(overall)
+        entry["families"] = {
+            f: {"n_cells": a.n_cells, "bootstrap": a.bootstrap, "ranking": a.ranked(),
+                "mean": {d: a.mean[d].as_dict() for d in a.detectors},
+                "iqm": {d: a.iqm[d].as_dict() for d in a.detectors}}
+            for f, a in board.families[(metric, tier)].items()
+        }  # fmt: skip
+        entry["stability"] = {
+            "policies": list(stability.policies),
+            "winners": stability.winners,
+            "iqm": {p: {d: round(v, 6) for d, v in r.items()} for p, r in stability.iqm.items()},
+            "kendall_tau": {f"{p}-{q}": round(t, 6) for (p, q), t in stability.kendall_tau.items()},
+        }
+        if (metric, tier) in board.unflagged:
+            entry["without_flagged_cells"] = _aggregate_mapping(board.unflagged[(metric, tier)])
+        boards.setdefault(metric, {})[tier] = entry
+    mdi = {
+        criterion: [
+            {"environment": e, "policy": p, "fault": f, "values": values}
+            for (e, p, f), values in sorted(rows.items())
+        ]
+        for criterion, rows in (minimum_detectable_impact or {}).items()
+    }
+    return {
+        "protocol_version": protocol_version,
+        "alpha": alpha,
+        "lead": {"metric": board.lead[0], "tier": board.lead[1]},
+        "boards": boards,
+        "flagged_cells": [
+            {
+                "environment": e,
+                "fault": f,
+                "tier": t,
+                "signals": {d: round(v, 6) for d, v in s.items()},
+            }
+            for (e, f, t), s in board.flagged.items()
+        ],
+        "trivial_rule": {
+            "detectors": list(TRIVIAL_DETECTORS),
+            "matched_auroc_at_least": TRIVIAL_THRESHOLD,
+        },
+        "minimum_detectable_impact": mdi,
+    }
 
 
-def markdown(board: Leaderboard) -> str:
-    """The leaderboard tables in Markdown."""
-    order = ranked(board)
-    envs = list(board.environments)
-    lines = [
-        f"## Mean matched AUROC per detector and environment ({board.n_cells} cells)",
-        "",
-        "| detector | " + " | ".join(envs) + " | IQM [95% CI] | mean [95% CI] |",
-        "|---|" + "---:|" * (len(envs) + 2),
-    ]
-    for d in order:
-        cells = " | ".join(f"{board.table[d][e]:.3f}" for e in envs)
-        iqm, mean = board.iqm[d], board.mean[d]
-        lines.append(
-            f"| {d} | {cells} | {iqm.value:.3f} [{iqm.ci_low:.3f}, {iqm.ci_high:.3f}] "
-            f"| {mean.value:.3f} [{mean.ci_low:.3f}, {mean.ci_high:.3f}] |"
-        )
-    lines += [
-        "",
-        "IQM: mean of the middle 50% of (environment, anomaly) cell means; CIs: stratified "
-        "bootstrap, episodes resampled within each cell.",
-        "",
-        "## Probability that the row detector beats the column detector on a random cell",
-        "",
-        "| | " + " | ".join(order) + " |",
-        "|---|" + "---:|" * len(order),
-    ]
-    for a in order:
-        row = ["—" if a == b else f"{board.improvement[(a, b)].value:.2f}" for b in order]
-        lines.append(f"| {a} | " + " | ".join(row) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def metrics_json(board: Leaderboard) -> dict[str, float]:
-    """The headline figures for `dvc metrics diff`: each detector's IQM and mean."""
-    flat = {f"iqm.{d}": round(board.iqm[d].value, 6) for d in board.detectors}
-    flat |= {f"mean.{d}": round(board.mean[d].value, 6) for d in board.detectors}
+def metrics_json(board: Board) -> dict[str, float]:
+    """Figures for `dvc metrics diff`: each detector's IQM and mean. The lead (metric, tier)'s
+    keys are `iqm.<detector>` and `mean.<detector>`; every other's are prefixed
+    `<metric>.<tier>.`."""
+    flat: dict[str, float] = {}
+    for key, overall in board.overall.items():
+        prefix = "" if key == board.lead else f"{key[0]}.{key[1]}."
+        for d in overall.detectors:
+            flat[f"{prefix}iqm.{d}"] = round(overall.iqm[d].value, 6)
+            flat[f"{prefix}mean.{d}"] = round(overall.mean[d].value, 6)
     return flat
 
 
-def plot(board: Leaderboard, path: Path) -> Path:
-    """IQM and mean with their CIs per detector (left); P(row beats column) (right)."""
-    from oodrl.report.plots import _figure, _save
+def plot(board: Board, path: Path, alpha: float | None = None) -> Path:
+    """The lead (metric, tier): IQM and mean with CIs; P(row beats column); performance
+    profiles with their bootstrap bands; the optimality gap on a log axis."""
+    import numpy as np
 
-    order = ranked(board)
-    figure = _figure(12, 0.45 * len(order) + 2.2)
-    left, right = figure.subplots(1, 2, width_ratios=(1, 1.1))
-    for offset, (label, values) in enumerate((("IQM", board.iqm), ("mean", board.mean))):
+    from oodrl.report.plots import _colours, _figure, _save
+
+    metric, tier = board.lead
+    lead = board.overall[board.lead]
+    label = metric_label(metric, alpha)
+    order = lead.ranked()
+    colours = _colours(order)
+    figure = _figure(13, 2 * (0.45 * len(order) + 2.2))
+    (scores, matrix_axis), (profiles, gaps) = figure.subplots(2, 2, width_ratios=(1, 1.1))
+    for offset, (name, values) in enumerate((("IQM", lead.iqm), ("mean", lead.mean))):
         y = [i + 0.18 * (offset * 2 - 1) for i in range(len(order))]
         x = [values[d].value for d in order]
         error = [
             [values[d].value - values[d].ci_low for d in order],
             [values[d].ci_high - values[d].value for d in order],
         ]
-        left.errorbar(x, y, xerr=error, fmt="o", capsize=3, label=f"{label} [95% CI]")
-    left.axvline(0.5, color="grey", linestyle=":", linewidth=1)
-    left.set_yticks(range(len(order)), order)
-    left.invert_yaxis()
-    left.set_xlabel("matched AUROC over (environment, anomaly) cells (0.5 = chance)")
-    left.legend(loc="lower right", fontsize="small")
-    left.set_title(f"Over {board.n_cells} (environment, anomaly) cells")
-    matrix = [[board.improvement[(a, b)].value if a != b else 0.5 for b in order] for a in order]
-    image = right.imshow(matrix, vmin=0, vmax=1, cmap="RdBu")
-    right.set_xticks(range(len(order)), order, rotation=45, ha="right")
-    right.set_yticks(range(len(order)), order)
+        scores.errorbar(x, y, xerr=error, fmt="o", capsize=3, label=f"{name} [95% CI]")
+    scores.set_yticks(range(len(order)), order)
+    scores.invert_yaxis()
+    scores.set_xlabel(f"{label} over (policy, cell) scores")
+    scores.legend(loc="lower right", fontsize="small")
+    scores.set_title(f"Tier {tier}: {lead.n_cells} cells, {_runs_note(lead)}")
+    matrix = [[lead.improvement[(a, b)].value if a != b else 0.5 for b in order] for a in order]
+    image = matrix_axis.imshow(matrix, vmin=0, vmax=1, cmap="RdBu")
+    matrix_axis.set_xticks(range(len(order)), order, rotation=45, ha="right")
+    matrix_axis.set_yticks(range(len(order)), order)
     for i, row in enumerate(matrix):
         for j, value in enumerate(row):
             if i != j:
                 colour = "white" if abs(value - 0.5) > 0.3 else "black"  # readable on dark cells
-                right.text(j, i, f"{value:.2f}", ha="center", va="center", color=colour)
-    right.set_title("P(row beats column) on a random cell")
-    figure.colorbar(image, ax=right, shrink=0.8)
+                matrix_axis.text(j, i, f"{value:.2f}", ha="center", va="center", color=colour)
+    matrix_axis.set_title("P(row beats column) on a random cell")
+    figure.colorbar(image, ax=matrix_axis, shrink=0.8)
+    taus = np.asarray(lead.taus)
+    for d in order:
+        profile = lead.profile[d]
+        # share ≥ τ is a step function of τ, constant up to the next grid point
+        profiles.plot(
+            taus, [p.value for p in profile], color=colours[d], label=d, drawstyle="steps-post"
+        )
+        profiles.fill_between(
+            taus, [p.ci_low for p in profile], [p.ci_high for p in profile],
+            color=colours[d], alpha=0.2, linewidth=0, step="post",
+        )  # fmt: skip
+    profiles.set_xlabel(f"τ ({label})")
+    profiles.set_ylabel("share of (policy, cell) scores ≥ τ")
+    profiles.set_ylim(0, 1.02)
+    profiles.set_title("Performance profiles [95% CI]")
+    profiles.legend(fontsize="x-small", loc="lower left")
+    value = [max(lead.optimality_gap[d].value, GAP_FLOOR) for d in order]
+    low = [max(lead.optimality_gap[d].ci_low, GAP_FLOOR) for d in order]
+    high = [max(lead.optimality_gap[d].ci_high, GAP_FLOOR) for d in order]
+    error = [[v - lo for v, lo in zip(value, low, strict=True)],
+             [hi - v for v, hi in zip(value, high, strict=True)]]  # fmt: skip
+    gaps.errorbar(value, range(len(order)), xerr=error, fmt="o", capsize=3)
+    gaps.set_xscale("log")
+    gaps.set_yticks(range(len(order)), order)
+    gaps.invert_yaxis()
+    gaps.set_xlabel(f"optimality gap 1 − {label} (log; 0 drawn at {GAP_FLOOR:g})")
+    gaps.set_title("Optimality gap [95% CI] (lower is better)")
     return _save(figure, path)
 
 
 def run_leaderboard(
-    results: Mapping[str, Path], out_dir: Path, n_boot: int, ci: float, seed: int
-) -> Leaderboard:
+    results: ResultsPaths, out_dir: Path, n_boot: int, ci: float, seed: int
+) -> Board:
     """Write leaderboard.md, leaderboard.yaml, metrics.json and leaderboard.png into out_dir."""
-    board = leaderboard(read_cells(results), n_boot=n_boot, ci=ci, seed=seed)
+    inputs = read_inputs(results)
+    board = build_board(inputs.cells, n_boot=n_boot, ci=ci, seed=seed)
+    extras = {
+        "protocol_version": inputs.protocol_version,
+        "alpha": inputs.alpha,
+        "minimum_detectable_impact": inputs.minimum_detectable_impact,
+    }
     out_dir = Path(out_dir)
-    atomic_write_text(out_dir / "leaderboard.md", markdown(board))
-    atomic_write_text(out_dir / "leaderboard.yaml", yamlio.dump(board_mapping(board)))
+    atomic_write_text(out_dir / "leaderboard.md", markdown(board, **extras))
+    atomic_write_text(out_dir / "leaderboard.yaml", yamlio.dump(board_mapping(board, **extras)))
     text = json.dumps(metrics_json(board), indent=2, sort_keys=True) + "\n"
     atomic_write_text(out_dir / "metrics.json", text)
-    plot(board, out_dir / "leaderboard.png")
+    plot(board, out_dir / "leaderboard.png", inputs.alpha)
     return board
