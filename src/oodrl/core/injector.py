@@ -110,6 +110,11 @@ class Fault:
         (writing the simulator's state through `sim` if the fault changes the dynamics)."""
         return observation
 
+    def after_reset(self, t: int, observation: np.ndarray, sim: SimulatorHandle) -> np.ndarray:
+        """Called when the episode that ended at step t resets; returns the observation the
+        policy sees first in the new episode (a faulty sensor reports it too)."""
+        return observation
+
 
 class OnlineInjector(BaseAnomalyInjector):
     """Makes a `Fault` per deployment stream; randomness comes from `rng`."""

@@ -115,6 +115,8 @@ def _rollout_block(
             if done:
                 episodes[i] += 1
                 nxt = env.reset(seed=episode_seed(block.seeds[i], episodes[i]))[0]
+                if fault is not None:
+                    nxt = fault.after_reset(t, nxt, handles[i])
             obs[i] = nxt
     for env in envs:
         env.close()
