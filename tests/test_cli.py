@@ -26,7 +26,7 @@ def test_list_shows_every_component_kind():
         else:
             sections[current].append(line.split()[0])
     assert len(sections["detectors"]) == 8
-    assert len(sections["injectors"]) == 9
+    assert len(sections["injectors"]) == 14  # the nine of SPEC §4 and five live observation faults
     assert "matched_auroc" in sections["metrics"]
     assert "LunarLander-v3" in sections["environments"]  # the suite adds more (SPEC §11)
     assert result.output.count("(online)") == 4 and result.output.count("(posthoc)") == 5
