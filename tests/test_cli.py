@@ -29,7 +29,8 @@ def test_list_shows_every_component_kind():
     assert len(sections["injectors"]) == 14  # the nine of SPEC §4 and five live observation faults
     assert "matched_auroc" in sections["metrics"]
     assert "LunarLander-v3" in sections["environments"]  # the suite adds more (SPEC §11)
-    assert result.output.count("(online)") == 4 and result.output.count("(posthoc)") == 5
+    # Online: four of SPEC §4 and the five live observation faults.
+    assert result.output.count("(online)") == 9 and result.output.count("(posthoc)") == 5
 
 
 def test_show_refuses_a_foreign_file_with_one_line(tmp_path):
