@@ -1,10 +1,13 @@
 """The README's recipe for comparing runs fits a terminal, in a real DVC repository.
 
-The repository has the project's params.yaml (so `dvc exp show` sees all of its params) and a
+The repository has the project's params.yaml (so `dvc exp show` sees all of its params), a
+collection stage per injector writing a store that changes with the headline severity (so that,
+as in the real pipeline, the changed dependencies' hashes are columns DVC would show), and a
 stage that writes reports/metrics.json with `metrics_json` from the realistic fake results,
 their matched AUROCs scaled by the headline severity so that experiments differ. The commands
-are read from the README's "Compare runs in a terminal" section and run at 100 columns: no line
-may be wider and no cell may be cut to "…".
+are read from the README's "Compare runs in a terminal" section and run at 100 columns with
+their output captured: no line may be wider, no cell may be cut to "…", and the table shows the
+followed detectors and the changed param and nothing else.
 """
 
 from __future__ import annotations
@@ -52,13 +55,26 @@ def experiment_repo(results, repo_root, tmp_path) -> Path:
     (repo / "params.yaml").write_text((repo_root / "params.yaml").read_text())
     (repo / "results.yaml").write_text(yaml.safe_dump(results))
     (repo / "write_metrics.py").write_text(WRITE_METRICS)
-    stage = {
+    injectors = yaml.safe_load((repo_root / "params.yaml").read_text())["benchmark"]["injectors"]
+    collect = {
+        "foreach": injectors,
+        "do": {
+            "cmd": "python -c \"import sys, yaml; p = yaml.safe_load(open('params.yaml')); "
+            "open(sys.argv[1], 'w').write(str(p['anomaly']['severity']) + sys.argv[1])\" "
+            "data/ood/${item}.zarr",
+            "params": ["anomaly.severity"],
+            "outs": ["data/ood/${item}.zarr"],
+        },
+    }
+    metrics = {
         "cmd": "python write_metrics.py",
-        "deps": ["write_metrics.py", "results.yaml"],
+        "deps": ["write_metrics.py", "results.yaml", *(f"data/ood/{i}.zarr" for i in injectors)],
         "params": ["anomaly.severity"],
         "metrics": [{"reports/metrics.json": {"cache": False}}],
     }
-    (repo / "dvc.yaml").write_text(yaml.safe_dump({"stages": {"metrics": stage}}))
+    (repo / "data" / "ood").mkdir(parents=True)
+    stages = {"collect_ood": collect, "metrics": metrics}
+    (repo / "dvc.yaml").write_text(yaml.safe_dump({"stages": stages}))
     run(repo, "git", "init", "-q")
     run(repo, "dvc", "init", "-q")
     run(repo, "dvc", "repro", "-q")
@@ -83,6 +99,14 @@ def test_the_compare_runs_recipe_fits_a_terminal(experiment_repo, repo_root):
         done = run(experiment_repo, *args, env={"COLUMNS": str(WIDTH)})
         outputs.append(done.stdout)
     _, diff, show = outputs
+    # Captured, not a terminal (as piped to a file or `less`): the changed stores' hashes are
+    # no columns of it.
+    assert not re.search(r"\b[0-9a-f]{32}\b", show), show
+    header = next(line for line in show.splitlines() if "Experiment" in line)
+    columns = re.findall(r"[\w./\\-]+", header.replace("Experiment", ""))
+    assert sorted(columns) == sorted(
+        ["anomaly.severity", f"{HEADLINE_METRIC}.cusum", f"{HEADLINE_METRIC}.pedm"]
+    ), show
     for output in (diff, show):
         lines = output.rstrip("\n").splitlines()
         assert max(len(line.rstrip()) for line in lines) <= WIDTH, output
