@@ -166,3 +166,37 @@ def test_minimum_detectable_impact_interpolates_on_the_impact_curve():
     assert minimum_detectable_impact([0.0, 0.2], [1.0, 0.9], [0.1, 0.4], [0.5, 0.95]) == (
         BEYOND_RANGE
     )
+
+
+def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
+    tmp_path, repo_root, monkeypatch
+):
+    from typer.testing import CliRunner
+
+    from oodrl.cli import app
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "params.yaml").write_text((repo_root / "params.yaml").read_text())
+    policy = str(repo_root / "models" / "policy.pt")
+
+    def impact(name: str, *extra: str):
+        return CliRunner().invoke(
+            app,
+            ["impact", "--policy", policy, "--out", f"{name}.yaml", "--table", f"{name}.md",
+             "--figure", f"{name}.png", "--injector", "gaussian_state_noise", "--episodes", "3",
+             *extra],
+        )  # fmt: skip
+
+    for name in ("first", "second"):
+        result = impact(name, "--grid", "0.5,1.0")
+        assert result.exit_code == 0, result.output
+    first = (tmp_path / "first.yaml").read_text()
+    assert first == (tmp_path / "second.yaml").read_text()
+    document = yamlio.load(first)
+    # The post-hoc observation fault was calibrated live, with running statistics (no --id).
+    assert document["faults"]["gaussian_state_noise"]["mode"] == "online"
+    assert document["seeds"]["policy"] == [500000, 500002]
+    assert "gaussian_state_noise" in (tmp_path / "first.md").read_text()
+    bad = impact("bad", "--grid", "0.5,0.2")
+    assert bad.exit_code == 2 and "--grid must be increasing" in bad.output
+    assert not (tmp_path / "bad.yaml").exists()

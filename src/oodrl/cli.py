@@ -213,6 +213,46 @@ def monitor(
     )
 
 
+@command("impact")
+def impact(
+    policy: Annotated[Path, PathOption()],
+    out: Annotated[Path, PathOption(help="impact.yaml: every fault's curve and tiers")],
+    table: Annotated[Path, PathOption(help="the tiers as a markdown table")],
+    figure: Annotated[Path, PathOption(help="the impact curves (PNG)")],
+    id: Annotated[  # noqa: A002 - the option is --id
+        Path | None,
+        typer.Option(help="clean ID set: the live observation faults' reference statistics"),
+    ] = None,
+    injector: Annotated[
+        list[str] | None, typer.Option(help="fault to calibrate (repeat; default: all benchmarked)")
+    ] = None,
+    grid: Annotated[
+        str, typer.Option(help="severities, comma-separated")
+    ] = "0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0",
+    episodes: Annotated[int, typer.Option(min=2, help="whole episodes per severity")] = 100,
+    horizon: Annotated[
+        int | None, typer.Option(min=1, help="longest episode (default: the time limit)")
+    ] = None,
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Impact tiers (SPEC §15): each fault's normalised return over whole episodes on a severity
+    grid, and the severities of the mild, moderate and severe tiers."""
+    from oodrl.stages.impact import run_impact
+
+    try:
+        severities = [float(s) for s in grid.split(",")]
+    except ValueError:
+        raise ConfigError(f"--grid must be comma-separated numbers; got {grid!r}.") from None
+    config = _load(params)
+    for name in injector or []:
+        _known(name, config.benchmark.injectors, "benchmark.injectors")
+    with _stage("impact"):
+        run_impact(
+            config, policy, out, table, figure, id_path=id, injectors=injector,
+            grid=severities, n_episodes=episodes, horizon=horizon,
+        )  # fmt: skip
+
+
 @command("show")
 def show(
     path: Annotated[Path, typer.Argument(help="results.yaml, sweep_results.yaml or run_meta.yaml")],
