@@ -84,8 +84,11 @@ def installed_entry_points() -> EntryPoints:
 class Registry:
     """Names (snake_case) to lazily imported objects of one kind."""
 
-    def __init__(self, kind: str) -> None:
+    def __init__(self, kind: str, adapt: str | None = None) -> None:
         self.kind = kind
+        #: `module:function` applied to every object the registry imports (detectors: a
+        #: library's outlier class becomes a detector, `oodrl.detectors.library`).
+        self.adapt = adapt
         self._paths: dict[str, str] = {}
         self._loaded: dict[str, Any] = {}
         self._entry_points_read = False
@@ -121,10 +124,13 @@ class Registry:
     def get(self, name: str) -> Any:
         """The object registered as `name`; a `module:Class` path is imported directly."""
         if ":" in name:
-            return import_path(name)
+            return self._adapted(import_path(name))
         if name not in self._loaded:
-            self._loaded[name] = import_path(self.path(name))
+            self._loaded[name] = self._adapted(import_path(self.path(name)))
         return self._loaded[name]
+
+    def _adapted(self, imported: Any) -> Any:
+        return import_path(self.adapt)(imported) if self.adapt else imported
 
     def __contains__(self, name: str) -> bool:
         self._read_entry_points()

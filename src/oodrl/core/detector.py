@@ -118,6 +118,11 @@ class BaseDetector(Component):
     #: Whether z_t is a function of step t alone (s_t, a_t, s_{t+1}), computed by
     #: row-independent arithmetic: `stream()` then scores each step on its own.
     row_independent: ClassVar[bool] = False
+    #: Whether its outputs are certified byte-identical on every x86-64 machine (SPEC §14): its
+    #: arithmetic is oodrl's own (`oodrl.numerics`). A class that does not say is certified when
+    #: it is defined in the oodrl package and its base class is, not when it is a plugin's; one
+    #: that runs a library's own kernels says False (`oodrl.detectors.library`).
+    machine_independent: ClassVar[bool]
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
         "threshold_rule": [Options(THRESHOLD_RULES)],
@@ -136,6 +141,9 @@ class BaseDetector(Component):
         super().__init_subclass__(**kwargs)
         if "name" not in cls.__dict__:
             cls.name = cls.__name__
+        if "machine_independent" not in cls.__dict__:
+            inherited = getattr(cls, "machine_independent", True)
+            cls.machine_independent = inherited and cls.__module__.split(".")[0] == "oodrl"
 
     # -- what subclasses write -------------------------------------------------------------
     @abstractmethod

@@ -14,7 +14,8 @@ see `oodrl.core.detector`), `threshold_percentile` (default 99.0), `alpha` (defa
 
 from oodrl.registry import Registry
 
-DETECTORS = Registry("detector")
+# A params `class:` naming a PyOD, scikit-learn or river class gets it wrapped (SPEC §17).
+DETECTORS = Registry("detector", adapt="oodrl.detectors.library:as_detector")
 
 DETECTORS.register("mahalanobis_distance", "oodrl.detectors.mahalanobis:MahalanobisDistance")
 DETECTORS.register("time_series_features", "oodrl.detectors.time_series:TimeSeriesFeatures")

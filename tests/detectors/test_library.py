@@ -1,0 +1,265 @@
+"""Detectors from PyOD, scikit-learn and river named by `class: "module:Class"` (SPEC §17):
+oodrl's detector contract over each wrapped library, a plugin class with only fit and
+decision_function, a wrong constructor argument through `oodrl check-params`, streaming equal
+to batch scoring bit for bit, and which detectors are certified machine-independent."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+import yaml
+from typer.testing import CliRunner
+
+from oodrl.cli import app
+from oodrl.detectors import DETECTORS
+from oodrl.detectors.library import LibraryDetector
+from oodrl.detectors.time_index import TimeIndex
+from oodrl.testing import (
+    check_detector,
+    check_not_fitted,
+    check_parameters,
+    check_pickle_roundtrip,
+    check_reproducible,
+    check_score_is_pure,
+    check_state_dim,
+    check_streaming,
+    check_threshold,
+    linear_system_trajectories,
+)
+
+#: Short streams and small models, so that every library runs the whole contract in seconds.
+DISCRETE = linear_system_trajectories(10, T=60, episode_length=40, seed=0)
+CONTINUOUS = linear_system_trajectories(10, T=60, episode_length=40, action_dim=2, seed=0)
+
+
+def splits(data):
+    return data[:6], data[6:8], data[8:]
+
+
+#: id -> (class path, params block without `class`, data). Between them the cases cover every
+#: feature view and both action kinds.
+LIBRARY_CASES = {
+    "pyod_knn": ("pyod.models.knn:KNN", {"features": "state_action"}, DISCRETE),
+    "pyod_iforest": (
+        "pyod.models.iforest:IForest",
+        {"features": "transition", "n_estimators": 20},
+        CONTINUOUS,
+    ),
+    "pyod_lof": ("pyod.models.lof:LOF", {"n_neighbors": 10}, DISCRETE),
+    "pyod_ecod": ("pyod.models.ecod:ECOD", {"features": "window", "window": 3}, DISCRETE),
+    "pyod_hbos": ("pyod.models.hbos:HBOS", {"features": "state_action"}, CONTINUOUS),
+    "sklearn_isolation_forest": (
+        "sklearn.ensemble:IsolationForest",
+        {"n_estimators": 20},
+        DISCRETE,
+    ),
+    "sklearn_lof_novelty": (
+        "sklearn.neighbors:LocalOutlierFactor",
+        {"novelty": True, "n_neighbors": 10, "features": "window", "window": 2},
+        DISCRETE,
+    ),
+    "river_half_space_trees": (
+        "river.anomaly:HalfSpaceTrees",
+        {"n_trees": 5, "height": 4, "window_size": 50},
+        CONTINUOUS,
+    ),
+}
+
+
+def factory(path: str, params: dict):
+    cls = DETECTORS.get(path)
+    return lambda: cls.from_params(params)
+
+
+@pytest.mark.parametrize("case", LIBRARY_CASES, ids=list(LIBRARY_CASES))
+def test_library_detector_passes_the_contract(case):
+    path, params, data = LIBRARY_CASES[case]
+    make = factory(path, params)
+    detector = make()
+    assert isinstance(detector, LibraryDetector)
+    assert not detector.machine_independent
+    check_detector(make, *splits(data))
+
+
+#: A user's own outlier class beside params.yaml: fit and decision_function, nothing else.
+PLUGIN_SOURCE = textwrap.dedent(
+    '''
+    import numpy as np
+
+
+    class CentroidDistance:
+        """Sum of |x - fit mean|^power: the PyOD API and no more (no oodrl base class)."""
+
+        def __init__(self, power=2.0):
+            self.power = power
+
+        def fit(self, X, y=None):
+            self.center_ = np.asarray(X).mean(axis=0)
+            return self
+
+        def decision_function(self, X):
+            return (np.abs(np.asarray(X) - self.center_) ** self.power).sum(axis=1)
+    '''
+)
+
+
+@pytest.fixture
+def project(tmp_path, monkeypatch):
+    """A project directory holding the plugin module, as the working directory."""
+    (tmp_path / "my_outliers.py").write_text(PLUGIN_SOURCE)
+    monkeypatch.chdir(tmp_path)
+    yield tmp_path
+    sys.modules.pop("my_outliers", None)
+
+
+def test_plugin_with_only_fit_and_decision_function(project):
+    make = factory("my_outliers:CentroidDistance", {"power": 1.5, "features": "transition"})
+    detector = make()
+    assert detector.name == "my_outliers:CentroidDistance" and not detector.machine_independent
+    check_detector(make, *splits(DISCRETE))
+    fitted = make().fit(DISCRETE[:6])
+    assert fitted.api_ == "decision_function" and fitted.batched_
+    # Larger = more anomalous, as the plugin's decision_function says: a far state scores more.
+    near = DISCRETE[8]
+    far = near.replace(states=near.states + 10, next_states=near.next_states + 10)
+    assert fitted.score(far).scores.min() > fitted.score(near).scores.max()
+
+
+def write_params(project, default_params, blocks: dict) -> str:
+    default_params["benchmark"]["detectors"] += list(blocks)
+    default_params["detectors"].update(blocks)
+    (project / "params.yaml").write_text(yaml.safe_dump(default_params))
+    return "params.yaml"
+
+
+def test_wrong_constructor_argument_through_the_oodrl_command(project, default_params):
+    """The real console command in a fresh process: exit 2, one line, no traceback."""
+    block = {"class": "pyod.models.iforest:IForest", "n_trees": 10}
+    path = write_params(project, default_params, {"library_one": block})
+    done = subprocess.run(
+        [sys.executable, "-m", "oodrl", "check-params", path], capture_output=True, text=True
+    )
+    assert done.returncode == 2, done.stdout + done.stderr
+    message = done.stderr.strip()
+    assert "\n" not in message and "Traceback" not in message
+    assert message.startswith("error: params.yaml: detectors.library_one: ")
+    assert "IForest" in message and "'n_trees'" in message
+
+
+@pytest.mark.parametrize(
+    ("block", "argument"),
+    [
+        ({"class": "sklearn.ensemble:IsolationForest", "n_estimators": -1}, "n_estimators"),
+        ({"class": "river.anomaly:HalfSpaceTrees", "n_tree": 5}, "n_tree"),
+        ({"class": "my_outliers:CentroidDistance", "powr": 2}, "powr"),
+    ],
+    ids=["sklearn_invalid_value", "river_unknown_argument", "plugin_unknown_argument"],
+)
+def test_wrong_constructor_argument_is_one_line_naming_detector_and_argument(
+    project, default_params, block, argument
+):
+    path = write_params(project, default_params, {"library_one": block})
+    result = CliRunner().invoke(app, ["check-params", path])
+    assert result.exit_code == 2, result.output
+    assert result.output.count("\n") == 1
+    assert "detectors.library_one" in result.output
+    assert block["class"].split(":")[1] in result.output and f"'{argument}'" in result.output
+
+
+def test_check_params_and_list_accept_library_detectors(project, default_params):
+    blocks = {
+        "pyod_iforest": {"class": "pyod.models.iforest:IForest", "n_estimators": 10},
+        "centroid": {"class": "my_outliers:CentroidDistance"},
+    }
+    path = write_params(project, default_params, blocks)
+    checked = CliRunner().invoke(app, ["check-params", path])
+    assert checked.exit_code == 0, checked.output
+    listed = CliRunner().invoke(app, ["list"])
+    assert listed.exit_code == 0, listed.output
+    section = listed.output.split("library detectors named in params.yaml:\n")[1]
+    assert section.splitlines() == [
+        "  centroid  my_outliers:CentroidDistance",
+        "  pyod_iforest  pyod.models.iforest:IForest",
+    ]
+
+
+def test_seed_reaches_the_library_unless_the_block_sets_it():
+    fit, _, evaluation = splits(DISCRETE)
+    cls = DETECTORS.get("pyod.models.iforest:IForest")
+
+    def scores(**params):
+        return cls(n_estimators=10, **params).fit(fit).score(evaluation[0]).scores
+
+    assert np.array_equal(scores(seed=3), scores(seed=3, random_state=3))
+    assert not np.array_equal(scores(seed=3), scores(seed=4))
+    assert np.array_equal(scores(seed=3, random_state=7), scores(seed=4, random_state=7))
+
+
+def test_batch_scoring_follows_the_probe():
+    """ECOD ranks each row among the rows of its call, so a row scores differently alone and
+    in a batch: oodrl scores it one row at a time, as a stream does. IsolationForest's rows
+    score alike either way: batches."""
+    fit, _, evaluation = splits(DISCRETE)
+    ecod = DETECTORS.get("pyod.models.ecod:ECOD")().fit(fit)
+    assert not ecod.batched_
+    x = ecod._rows(evaluation[0])
+    in_one_call = ecod.model_.decision_function(x)
+    assert not np.array_equal(in_one_call, ecod.score(evaluation[0]).scores)
+    forest = DETECTORS.get("sklearn.ensemble:IsolationForest")(n_estimators=10).fit(fit)
+    assert forest.batched_
+    check_streaming(ecod, evaluation)
+    check_streaming(forest, evaluation)
+
+
+def test_window_view_stacks_the_last_states_oldest_first():
+    fit, _, evaluation = splits(DISCRETE)
+    detector = DETECTORS.get("pyod.models.knn:KNN")(features="window", window=3).fit(fit)
+    trajectory = evaluation[0]
+    states = detector.standardizer_.transform(trajectory.states.astype(np.float64))
+    rows = detector._rows(trajectory)
+    assert rows.shape == (trajectory.T, 3 * trajectory.state_dim)
+    np.testing.assert_array_equal(rows[5], np.concatenate(states[3:6]))
+    np.testing.assert_array_equal(rows[1], np.concatenate([states[0], states[0], states[1]]))
+    assert detector.latency == 0
+    assert DETECTORS.get("pyod.models.knn:KNN")(features="transition").latency == 1
+
+
+def test_sklearn_lof_without_novelty_is_refused_with_the_reason():
+    from oodrl.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="neither fit and decision_function"):
+        DETECTORS.get("sklearn.neighbors:LocalOutlierFactor").from_params({})
+
+
+def test_time_index_scores_the_step_and_streams_it():
+    fit, calibration, evaluation = splits(DISCRETE)
+    check_parameters(TimeIndex())
+    check_not_fitted(TimeIndex(), evaluation[0])
+    check_reproducible(TimeIndex, fit, evaluation)
+    detector = TimeIndex().fit(fit)
+    np.testing.assert_array_equal(detector.score(evaluation[0]).scores, np.arange(60.0))
+    check_score_is_pure(detector, evaluation)
+    check_state_dim(detector, evaluation[0])
+    check_threshold(detector, calibration)
+    check_streaming(detector, evaluation)
+    check_pickle_roundtrip(detector, evaluation)
+    assert TimeIndex.machine_independent
+
+
+class _PluginSubclass(TimeIndex):
+    """A detector subclass defined outside oodrl: not certified unless it says so."""
+
+
+class _CertifiedPlugin(TimeIndex):
+    machine_independent = True
+
+
+def test_machine_independence_is_declared_per_detector():
+    assert all(DETECTORS.get(name).machine_independent for name in DETECTORS.names())
+    assert not _PluginSubclass.machine_independent
+    assert _CertifiedPlugin.machine_independent
+    assert not DETECTORS.get("pyod.models.knn:KNN").machine_independent
