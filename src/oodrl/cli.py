@@ -96,8 +96,12 @@ def _stage(name: str):
 
 # -- user verbs ------------------------------------------------------------------------------
 @command("list")
-def list_components() -> None:
-    """List registered components by kind."""
+def list_components(
+    params: Annotated[
+        Path, typer.Option(help="also list the library detectors this params file names")
+    ] = Path("params.yaml"),
+) -> None:
+    """List registered components by kind, and the library detectors params name."""
     from oodrl.detectors import DETECTORS
     from oodrl.envs import ENVIRONMENTS
     from oodrl.injectors import INJECTORS
@@ -115,6 +119,15 @@ def list_components() -> None:
             if kind == "injectors":
                 extra = f"  ({registry.get(name).mode})"
             typer.echo(f"  {name}{extra}")
+    if params.is_file():
+        from oodrl.config import read_params_data
+        from oodrl.detectors.library import library_detectors_named
+
+        library = library_detectors_named(read_params_data(params).get("detectors"))
+        if library:
+            typer.echo(f"library detectors named in {params}:")
+            for name, path in library.items():
+                typer.echo(f"  {name}  {path}")
 
 
 @command("check-params")
