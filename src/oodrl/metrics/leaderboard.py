@@ -169,10 +169,11 @@ def interquartile_mean(values: np.ndarray, axis: int | None = -1) -> np.ndarray:
 
 
 def _mann_whitney(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Share of pairs with a > b over the last axes (a: (..., n_a), b: (..., n_b)), ties ½."""
-    greater = (a[..., :, None] > b[..., None, :]).mean(axis=(-2, -1))
-    equal = (a[..., :, None] == b[..., None, :]).mean(axis=(-2, -1))
-    return greater + 0.5 * equal
+    """U / (n_a · n_b) over the last axes (a: (..., n_a), b: (..., n_b)): the share of pairs
+    with a > b, ties ½ (U in whole and half counts, one division, as scipy's statistic)."""
+    greater = (a[..., :, None] > b[..., None, :]).sum(axis=(-2, -1))
+    equal = (a[..., :, None] == b[..., None, :]).sum(axis=(-2, -1))
+    return (greater + 0.5 * equal) / (a.shape[-1] * b.shape[-1])
 
 
 def _task_runs(
