@@ -263,3 +263,54 @@ def test_machine_independence_is_declared_per_detector():
     assert not _PluginSubclass.machine_independent
     assert _CertifiedPlugin.machine_independent
     assert not DETECTORS.get("pyod.models.knn:KNN").machine_independent
+
+
+def _results_document(uncertified: list[str]) -> dict:
+    """A results.yaml as the metrics stage writes it: two detectors on two faults."""
+    rng = np.random.default_rng(0)
+    records = []
+    for fault in ("gaussian_state_noise", "stuck_actuator"):
+        for detector, strength in (("cusum", 0.9), ("pyod_iforest", 0.7)):
+            episodes = np.clip(strength + 0.05 * rng.standard_normal(6), 0, 1)
+            metric = {"mean": float(episodes.mean()), "ci_low": 0.0, "ci_high": 1.0}
+            records.append(
+                {"kind": "anomaly", "detector": detector, "injector": fault, "mode": "posthoc",
+                 "severity": 0.5, "latency": 0, "metrics": {"matched_auroc": metric},
+                 "episodes": {"matched_auroc": episodes.tolist()}}
+            )  # fmt: skip
+    document = {"records": records}
+    if uncertified:
+        document["uncertified_detectors"] = uncertified
+    return document
+
+
+def test_results_and_leaderboard_mark_uncertified_detectors_per_row(tmp_path):
+    from oodrl import yamlio
+    from oodrl.metrics.results import Results
+    from oodrl.report.leaderboard import run_leaderboard
+    from oodrl.report.tables import headline_table
+
+    # Every detector certified (the root pipeline): results.yaml has no section for it.
+    assert "uncertified_detectors" not in Results([], {}, {}, {}).results_document()
+    assert Results([], {}, {}, {}, ["pyod_iforest"]).results_document()[
+        "uncertified_detectors"
+    ] == ["pyod_iforest"]
+    paths = {}
+    for env, uncertified in (("CartPole-v1", ["pyod_iforest"]), ("Pendulum-v1", [])):
+        paths[env] = tmp_path / env / "results.yaml"
+        paths[env].parent.mkdir()
+        paths[env].write_text(yamlio.dump(_results_document(uncertified)))
+    rows = headline_table(_results_document(["pyod_iforest"])).splitlines()[2:]
+    assert [row.split("|")[1].strip() for row in rows] == ["cusum", "pyod_iforest †"]
+    run_leaderboard(paths, tmp_path / "out", n_boot=50, ci=0.95, seed=0)
+    markdown = (tmp_path / "out" / "leaderboard.md").read_text()
+    assert "| pyod_iforest † |" in markdown and "| cusum |" in markdown
+    assert "† not certified machine-independent" in markdown
+    board = yamlio.load((tmp_path / "out" / "leaderboard.yaml").read_text())
+    assert board["uncertified_detectors"] == ["pyod_iforest"]
+    # Without uncertified detectors, no mark, no note, no key: outputs as before.
+    for path in paths.values():
+        path.write_text(yamlio.dump(_results_document([])))
+    run_leaderboard(paths, tmp_path / "plain", n_boot=50, ci=0.95, seed=0)
+    assert "†" not in (tmp_path / "plain" / "leaderboard.md").read_text()
+    assert "uncertified_detectors" not in (tmp_path / "plain" / "leaderboard.yaml").read_text()

@@ -72,19 +72,26 @@ class ResultRecord:
 class Results:
     """Every record (sorted by kind, detector, injector, mode), each injector's execution mode,
     the sweep summaries by injector, severity and detector, and each detector's threshold rule
-    with the false-alarm rate it promises on clean data (`nominal_false_alarms`)."""
+    with the false-alarm rate it promises on clean data (`nominal_false_alarms`), and the
+    detectors not certified machine-independent (SPEC §14, §17)."""
 
     records: list[ResultRecord]
     modes: dict[str, str]
     sweep: dict[str, dict[float, dict[str, Summary]]]
     thresholds: dict[str, dict[str, Any]]
+    uncertified: list[str] = dataclasses.field(default_factory=list)
 
     def results_document(self) -> dict[str, Any]:
-        """results.yaml's content."""
-        return {
+        """results.yaml's content; the uncertified detectors' list only when there are some."""
+        from oodrl.report.tables import UNCERTIFIED
+
+        document = {
             "records": [record.as_dict() for record in self.records],
             "thresholds": self.thresholds,
         }
+        if self.uncertified:
+            document[UNCERTIFIED] = self.uncertified
+        return document
 
     def sweep_document(self) -> dict[str, Any]:
         """sweep_results.yaml's content."""
@@ -214,4 +221,5 @@ def compute_results(params: Params, scores_dir: Path) -> Results:
         for (injector, severity), summary in detector_sweep.items():
             sweep[injector].setdefault(severity, {})[detector] = summary
     records.sort(key=lambda r: (r.kind, r.detector, r.injector or "", r.mode))
-    return Results(records, modes, sweep, nominal_false_alarms(params))
+    uncertified = sorted(d for d in detectors if not params.detector(d).machine_independent)
+    return Results(records, modes, sweep, nominal_false_alarms(params), uncertified)

@@ -36,7 +36,7 @@ from oodrl.metrics.leaderboard import (
     one_protocol_version,
     policy_key,
 )
-from oodrl.report.tables import record_injector
+from oodrl.report.tables import UNCERTIFIED, certification_note, marked, record_injector
 
 #: Where a record keeps the false-alarm budget α of its operating point.
 OPERATING_POINT = "operating_point"
@@ -50,8 +50,8 @@ QUOTED_TAUS = (0.9, 1.0)
 #: Where the log axis of the optimality-gap figure draws a gap of exactly 0.
 GAP_FLOOR = 1e-4
 
-#: Results files by (environment, policy), or by environment for its policy "0".
-ResultsPaths = Mapping[tuple[str, str] | str, Path]
+#: Results files (one or several) by (environment, policy), or by environment for policy "0".
+ResultsPaths = Mapping[tuple[str, str] | str, Path | Sequence[Path]]
 #: criterion → (environment, policy, fault) → detector → return loss, or "beyond range".
 MinimumDetectableImpact = dict[str, dict[tuple[str, str, str], dict[str, float | str]]]
 
@@ -66,61 +66,84 @@ class Inputs:
     #: The false-alarm budget of `detection_rate@K`, when the records name one α.
     alpha: float | None = None
     minimum_detectable_impact: MinimumDetectableImpact = field(default_factory=dict)
+    #: Detectors some results file lists as not certified machine-independent (SPEC §14, §17).
+    uncertified: tuple[str, ...] = ()
 
 
 def _run_key(key: tuple[str, str] | str) -> tuple[str, str]:
     return (key, FIRST_POLICY) if isinstance(key, str) else (str(key[0]), str(key[1]))
 
 
+def _paths(paths: Path | Sequence[Path]) -> list[Path]:
+    return [Path(paths)] if isinstance(paths, str | Path) else [Path(p) for p in paths]
+
+
 def read_inputs(results: ResultsPaths) -> Inputs:
-    """Every results file's per-episode values by metric and cell, its version, α and MDI."""
+    """Every results file's per-episode values by metric and cell, its version, α and MDI.
+
+    Within a tier every record must hold the same per-episode metrics (headline records hold
+    matched AUROC alone, tier records also `detection_rate@K`); one (cell, detector) comes
+    from one record.
+    """
     from oodrl.errors import StoreError
 
     documents: dict[str, Any] = {}
     cells: dict[str, dict[Cell, dict[str, list[float]]]] = {}
-    metrics_of: dict[tuple[str, Cell, str], set[str]] = {}
+    metrics_of: dict[tuple[Cell, str], tuple[Path, set[str]]] = {}
     alphas: set[float] = set()
     mdi: MinimumDetectableImpact = {}
-    for key, path in results.items():
+    uncertified: set[str] = set()
+    for key, paths in results.items():
         env_id, policy = _run_key(key)
-        if not Path(path).is_file():
-            raise StoreError(f"{path}: results of {env_id} are missing; build its pipeline first.")
-        document = yamlio.load(Path(path).read_text())
-        documents[str(path)] = document
-        for record in document["records"]:
-            if record["kind"] != "anomaly":
-                continue
-            episodes = record.get("episodes") or {}
-            if MATCHED_AUROC not in episodes:
+        for path in _paths(paths):
+            if not path.is_file():
                 raise StoreError(
-                    f"{path}: records lack per-episode {MATCHED_AUROC}; re-run {env_id}'s "
-                    f"metrics stage."
+                    f"{path}: results of {env_id} are missing; build its pipeline first."
                 )
-            cell = Cell(env_id, policy, record_injector(record), record.get("tier", HEADLINE_TIER))
-            detector = record["detector"]
-            if (str(path), cell, detector) in metrics_of:
-                raise StoreError(f"{path}: two records of {detector} on {tuple(cell)}.")
-            metrics_of[(str(path), cell, detector)] = set(episodes)
-            for metric, values in episodes.items():
-                cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
-            alpha = (record.get(OPERATING_POINT) or {}).get("alpha")
-            if alpha is not None:
-                alphas.add(float(alpha))
-        for detector, faults in (document.get(MINIMUM_DETECTABLE_IMPACT) or {}).items():
-            for fault, criteria in faults.items():
-                for criterion, value in criteria.items():
-                    row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
-                    row[detector] = value
-    every = set().union(*metrics_of.values()) if metrics_of else set()
-    for (path, cell, detector), found in metrics_of.items():
-        if found != every:
+            document = yamlio.load(path.read_text())
+            documents[str(path)] = document
+            uncertified.update(document.get(UNCERTIFIED) or ())
+            for record in document["records"]:
+                if record["kind"] != "anomaly":
+                    continue
+                episodes = record.get("episodes") or {}
+                if MATCHED_AUROC not in episodes:
+                    raise StoreError(
+                        f"{path}: records lack per-episode {MATCHED_AUROC}; re-run {env_id}'s "
+                        f"metrics stage."
+                    )
+                tier = record.get("tier", HEADLINE_TIER)
+                cell = Cell(env_id, policy, record_injector(record), tier)
+                detector = record["detector"]
+                if (cell, detector) in metrics_of:
+                    raise StoreError(
+                        f"{path}: a second record of {detector} on {tuple(cell)} (the first in "
+                        f"{metrics_of[(cell, detector)][0]})."
+                    )
+                metrics_of[(cell, detector)] = (path, set(episodes))
+                for metric, values in episodes.items():
+                    cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
+                alpha = (record.get(OPERATING_POINT) or {}).get("alpha")
+                if alpha is not None:
+                    alphas.add(float(alpha))
+            for detector, faults in (document.get(MINIMUM_DETECTABLE_IMPACT) or {}).items():
+                for fault, criteria in faults.items():
+                    for criterion, value in criteria.items():
+                        row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
+                        row[detector] = value
+    in_tier: dict[str, set[str]] = {}
+    for (cell, _), (_, found) in metrics_of.items():
+        in_tier.setdefault(cell.tier, set()).update(found)
+    for (cell, detector), (path, found) in metrics_of.items():
+        if found != in_tier[cell.tier]:
             raise StoreError(
                 f"{path}: {detector} on {tuple(cell)} lacks per-episode "
-                f"{', '.join(sorted(every - found))}, which other records have; re-run its "
-                f"metrics stage."
+                f"{', '.join(sorted(in_tier[cell.tier] - found))}, which other records of tier "
+                f"{cell.tier} have; re-run its metrics stage."
             )
     version = one_protocol_version(documents)
-    return Inputs(cells, version, next(iter(alphas)) if len(alphas) == 1 else None, mdi)
+    alpha = next(iter(alphas)) if len(alphas) == 1 else None
+    return Inputs(cells, version, alpha, mdi, tuple(sorted(uncertified)))
 
 
 def metric_label(metric: str, alpha: float | None = None) -> str:
@@ -155,7 +178,9 @@ def _runs_note(board: Aggregate) -> str:
     return f"{low} policies per cell" if low == high else f"{low}–{high} policies per cell"
 
 
-def _section(board: Board, metric: str, tier: str, alpha: float | None) -> list[str]:
+def _section(
+    board: Board, metric: str, tier: str, alpha: float | None, uncertified: Sequence[str] = ()
+) -> list[str]:
     overall = board.overall[(metric, tier)]
     unflagged = board.unflagged.get((metric, tier))
     label = metric_label(metric, alpha)
@@ -166,7 +191,7 @@ def _section(board: Board, metric: str, tier: str, alpha: float | None) -> list[
         header.append(f"IQM without flagged cells ({unflagged.n_cells}) [95% CI]")
     rows = []
     for d in order:
-        row = [d, *(f"{overall.table[d][e]:.3f}" for e in envs)]
+        row = [marked(d, uncertified), *(f"{overall.table[d][e]:.3f}" for e in envs)]
         row += [_interval(overall.iqm[d]), _interval(overall.mean[d])]
         if unflagged is not None:
             row.append(_interval(unflagged.iqm[d]))
@@ -298,8 +323,10 @@ def markdown(
     protocol_version: int,
     alpha: float | None = None,
     minimum_detectable_impact: MinimumDetectableImpact | None = None,
+    uncertified: Sequence[str] = (),
 ) -> str:
-    """leaderboard.md: the lead (metric, tier) first, then every other, then flags and MDI."""
+    """leaderboard.md: the lead (metric, tier) first, then every other, then flags and MDI;
+    uncertified detectors marked, with a note, when there are some."""
     lead = board.overall[board.lead]
     policies = sorted({p for s in board.stability.values() for p in s.policies}, key=policy_key)
     stamp = (
@@ -318,7 +345,9 @@ def markdown(
     ]
     keys = [board.lead] + [k for k in board.overall if k != board.lead]
     for metric, tier in sorted(keys, key=lambda k: (board.tiers.index(k[1]), keys.index(k))):
-        lines += _section(board, metric, tier, alpha)
+        lines += _section(board, metric, tier, alpha, uncertified)
+    if uncertified:
+        lines += ["## Machine independence", "", certification_note(uncertified), ""]
     lines += _flag_lines(board, lead.detectors)
     lines += _mdi_lines(minimum_detectable_impact or {})
     return "\n".join(lines).rstrip("\n") + "\n"
@@ -359,8 +388,10 @@ def board_mapping(
     protocol_version: int,
     alpha: float | None = None,
     minimum_detectable_impact: MinimumDetectableImpact | None = None,
+    uncertified: Sequence[str] = (),
 ) -> dict[str, Any]:
-    """Everything the leaderboard computed, as plain data (sorted keys when dumped)."""
+    """Everything the leaderboard computed, as plain data (sorted keys when dumped); the
+    uncertified detectors only when there are some."""
     boards: dict[str, dict[str, Any]] = {}
     for (metric, tier), overall in board.overall.items():
         stability = board.stability[(metric, tier)]
@@ -387,7 +418,7 @@ def board_mapping(
         ]
         for criterion, rows in (minimum_detectable_impact or {}).items()
     }
-    return {
+    mapping = {
         "protocol_version": protocol_version,
         "alpha": alpha,
         "lead": {"metric": board.lead[0], "tier": board.lead[1]},
@@ -407,6 +438,7 @@ def board_mapping(
         },
         "minimum_detectable_impact": mdi,
     }
+    return mapping | ({UNCERTIFIED: list(uncertified)} if uncertified else {})
 
 
 def metrics_json(board: Board) -> dict[str, float]:
@@ -500,6 +532,7 @@ def run_leaderboard(
         "protocol_version": inputs.protocol_version,
         "alpha": inputs.alpha,
         "minimum_detectable_impact": inputs.minimum_detectable_impact,
+        "uncertified": inputs.uncertified,
     }
     out_dir = Path(out_dir)
     atomic_write_text(out_dir / "leaderboard.md", markdown(board, **extras))

@@ -22,6 +22,11 @@ MISSING = "—"
 #: The headline figure metrics.json holds per detector (its mean over anomalies), so that
 #: `dvc exp show` and `dvc metrics diff` compare runs in a few columns; results.yaml keeps the rest.
 HEADLINE_METRIC = "matched_auroc"
+#: results.yaml's list of the detectors not certified machine-independent (SPEC §14, §17: they
+#: run a library's own kernels, or are plugins); absent when every detector is certified.
+UNCERTIFIED = "uncertified_detectors"
+#: Marks an uncertified detector's name in the tables.
+UNCERTIFIED_MARK = " †"
 
 #: Human names of metrics. AUPRC is average precision (the step-wise area), and says so.
 LABELS = {
@@ -194,13 +199,28 @@ def markdown_table(
 # ---------------------------------------------------------------------------------------- tables
 
 
+def marked(detector: str, uncertified: Iterable[str]) -> str:
+    """The detector's name, marked when it is not certified machine-independent."""
+    return detector + UNCERTIFIED_MARK if detector in uncertified else detector
+
+
+def certification_note(uncertified: Sequence[str]) -> str:
+    return (
+        f"{UNCERTIFIED_MARK.strip()} not certified machine-independent (docs/SPEC.md §14, §17): "
+        f"{', '.join(uncertified)} run a library's own kernels or are plugins, so their scores "
+        "may differ on another CPU. Every other detector is certified."
+    )
+
+
 def headline_table(results: Mapping[str, Any]) -> str:
     """Per-detector mean matched AUROC / AUPRC (AP) over anomalies, best first (for the README)."""
     records = anomaly_records(results)
     aurocs = detector_means(records, "matched_auroc")
     auprcs = detector_means(records, "matched_auprc")
+    uncertified = results.get(UNCERTIFIED) or []
+    counts = {d: str(sum(r["detector"] == d for r in records)) for d in aurocs}
     rows = [
-        [d, fmt(aurocs[d]), fmt(auprcs[d]), str(sum(r["detector"] == d for r in records))]
+        [marked(d, uncertified), fmt(aurocs[d]), fmt(auprcs[d]), counts[d]]
         for d in best_first(aurocs, "matched_auroc")
     ]
     header = ["detector", LABELS["matched_auroc"], LABELS["matched_auprc"], "anomalies"]
@@ -407,6 +427,8 @@ def render_tables(results: Mapping[str, Any], sweep: Mapping[str, Any] | None = 
         "the share of clean episodes with any alarm (docs/SPEC.md §13).",
         false_alarm_table(results),
     ]
+    if results.get(UNCERTIFIED):
+        sections += ["## Machine independence", certification_note(results[UNCERTIFIED])]
     text = "\n\n".join(sections) + "\n"
     return text + "\n" + sweep_tables(sweep) if sweep else text
 
