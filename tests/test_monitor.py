@@ -157,3 +157,48 @@ def test_the_monitor_command_prints_alarms_and_a_summary(monkeypatch):
     assert "onset at step 40" in summary and "false alarms before the onset" in summary
     bad = CliRunner().invoke(app, [*args, "--fault", "no_such_fault"])
     assert bad.exit_code != 0 and "Unknown injector 'no_such_fault'" in bad.output
+
+
+def test_a_detector_fitted_by_the_monitor_alarms_by_the_per_stream_rule():
+    from oodrl.metrics.operating import min_calibration_streams
+    from oodrl.monitor import fitted_on_clean_streams
+
+    adapter = ENVIRONMENTS.get("CartPole-v1")()
+    params = {"threshold_rule": "episode_max", "alpha": 0.1}
+    detector = fitted_on_clean_streams(adapter, _policy("CartPole-v1"), "cusum", params, 3, 40)
+    assert detector.threshold_rule == "episode_max"
+    # Calibrated on the ⌈1/α⌉ − 1 = 9 streams the rule needs (seeds 10003..10011), not on 3.
+    calibration = collect(adapter, _policy("CartPole-v1"), range(10_003, 10_012), 40)
+    maxima = [o.scores.max() for o in detector.score_many(calibration.trajectories())]
+    assert len(maxima) == min_calibration_streams(0.1)
+    assert detector.threshold_ == np.nextafter(max(maxima), np.inf)
+
+
+def test_monitor_over_episodes_reports_rates_that_add_up():
+    from oodrl.monitor import run_monitor_episodes
+
+    lines: list[str] = []
+    summary = run_monitor_episodes(
+        "CartPole-v1", "mahalanobis_distance", "dynamics_scaling", 1.0, episodes=4, k=30,
+        steps=120, fit_streams=3, detector_params={"features": "transition"}, root=ROOT,
+        echo=lines.append,
+    )  # fmt: skip
+    point = summary.point
+    assert summary.rule == "episode_max (α = 0.05)" and summary.onset == 40
+    assert point.n_faulty + summary.ended_before_onset == 4 and point.n_clean == 4
+    missed = point.n_faulty - point.detected - point.early_false_alarms
+    assert missed >= 0 and len(point.delays) >= point.detected
+    assert point.curve[30] == point.detection_rate  # K = 30 is the curve's last point
+    assert len(lines) == 3 and lines[1].startswith("  detection_rate@30: ")
+    assert "Clopper-Pearson" in lines[2]
+
+
+def test_the_monitor_command_over_episodes_needs_a_fault(monkeypatch):
+    from typer.testing import CliRunner
+
+    from oodrl.cli import app
+
+    monkeypatch.chdir(ROOT)
+    args = ["monitor", "--env", "CartPole-v1", "--detector", "cusum", "--episodes", "3"]
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2 and "name a --fault" in result.output

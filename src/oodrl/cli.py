@@ -217,13 +217,33 @@ def monitor(
     steps: Annotated[int, typer.Option(min=2, help="longest episode")] = 500,
     onset: Annotated[int | None, typer.Option(help="fault onset (default steps // 3)")] = None,
     seed: Annotated[int, typer.Option(min=0)] = 0,
+    episodes: Annotated[
+        int, typer.Option(min=1, help="N > 1: rates over seeds seed..seed+N-1 (needs --fault)")
+    ] = 1,
+    k: Annotated[int, typer.Option("--k", min=0, help="detection window: [onset, onset+K]")] = 100,
+    alpha: Annotated[
+        float, typer.Option(min=0.0, max=1.0, help="per-stream false-alarm budget")
+    ] = 0.05,
 ) -> None:
-    """Run the committed policy under the OOD monitor: alarms as they happen, then a summary."""
-    from oodrl.monitor import run_monitor
+    """Run the committed policy under the OOD monitor: alarms as they happen, then a summary;
+    with --episodes N, the detection rate, delays and false alarms over N seeds. A detector
+    fitted here alarms by the per-stream rule at --alpha (SPEC §15)."""
+    from oodrl.monitor import run_monitor, run_monitor_episodes
 
-    run_monitor(
-        env, detector, fault, severity, steps=steps, onset=onset, seed=seed, echo=typer.echo
-    )
+    if not 0 < alpha < 1:
+        raise ConfigError(f"--alpha must be in (0, 1); got {alpha}.")
+    if episodes == 1:
+        run_monitor(
+            env, detector, fault, severity, steps=steps, onset=onset, seed=seed, alpha=alpha,
+            echo=typer.echo,
+        )  # fmt: skip
+        return
+    if fault is None:
+        raise ConfigError("--episodes N > 1 reports detection rates: name a --fault.")
+    run_monitor_episodes(
+        env, detector, fault, severity, episodes=episodes, k=k, steps=steps, onset=onset,
+        seed=seed, alpha=alpha, echo=typer.echo,
+    )  # fmt: skip
 
 
 @command("impact")

@@ -21,7 +21,12 @@ record. Discrete and continuous actions alike; the monitor never changes what th
 
 `run_monitor` is the demonstration behind `oodrl monitor`: the environment's committed policy,
 a live fault from the onset on (an online injector's `Fault` hooks, as the collector uses them),
-alarms printed as they happen and a one-line summary.
+alarms printed as they happen and a one-line summary. A detector it fits itself alarms by the
+suite's per-stream rule (SPEC §15: `episode_max`, conformal at α over ⌈1/α⌉ − 1 or more clean
+streams), so a clean episode raises any alarm with probability ≤ α. `run_monitor_episodes`
+(`oodrl monitor --episodes N`) reports the rates over N seeds instead of one anecdote: the
+detection rate within K steps of the onset (`oodrl.metrics.operating`), the delays, the first
+alarms before the onset, and the clean false-alarm rate beside α.
 """
 
 from __future__ import annotations
@@ -40,7 +45,8 @@ from oodrl.core.detector import BaseDetector
 from oodrl.core.injector import Fault
 from oodrl.core.spec import default_onset
 from oodrl.core.stream import StepScore
-from oodrl.errors import NotFittedError
+from oodrl.errors import ConfigError, NotFittedError
+from oodrl.metrics.operating import DEFAULT_ALPHA, OperatingPoint
 
 #: `on_alarm(record)`: called once for every alarmed step score.
 AlarmCallback = Callable[[StepScore], None]
@@ -139,6 +145,14 @@ class MonitorSummary:
     first_alarm_step: int | None
     first_alarm_raised_at: int | None
     false_alarms_before_onset: int
+    #: Every step whose score raised an alarm, in order.
+    alarm_steps: tuple[int, ...] = ()
+
+    def alarms(self) -> np.ndarray:
+        """(steps,) bool: whether the score of each step of the episode raised an alarm."""
+        alarms = np.zeros(self.steps, bool)
+        alarms[list(self.alarm_steps)] = True
+        return alarms
 
     @property
     def delay(self) -> int | None:
@@ -180,6 +194,7 @@ def run_monitor(
     detector_params: Mapping[str, Any] | None = None,
     injector_params: Mapping[str, Any] | None = None,
     fit_streams: int = 8,
+    alpha: float = DEFAULT_ALPHA,
     root: Path = Path("."),
     echo: Callable[[str], None] = print,
 ) -> MonitorSummary:
@@ -189,11 +204,32 @@ def run_monitor(
 
     `detector` is a fitted detector, a pickle written by `oodrl fit`, or a registered name: then
     it is fitted here, with `detector_params`, on `fit_streams` clean streams of `steps` steps
-    and calibrated on as many more (seeds 10_000 on, apart from the monitored `seed`).
-    Policies are read under the project `root`.
+    and calibrated by the per-stream rule at `alpha` (unless `detector_params` name another
+    `threshold_rule`) on max(`fit_streams`, ⌈1/α⌉ − 1) more (seeds 10_000 on, apart from the
+    monitored seeds). Policies are read under the project `root`.
     """
+    adapter, policy, detector = _monitor_setup(
+        env_id, detector, detector_params, fit_streams, steps, alpha, root
+    )
+    onset = (default_onset(steps) if onset is None else onset) if fault is not None else None
+    summary = _run_episode(
+        adapter, policy, detector, fault, severity, onset, injector_params, steps, seed, echo
+    )
+    echo(summary.line())
+    return summary
+
+
+def _monitor_setup(
+    env_id: str,
+    detector: str | BaseDetector | Path,
+    detector_params: Mapping[str, Any] | None,
+    fit_streams: int,
+    steps: int,
+    alpha: float,
+    root: Path,
+) -> tuple[EnvironmentAdapter, Any, BaseDetector]:
+    """The adapter, the committed policy, and the detector (fitted here if named)."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.envs.collect import noise_rng
     from oodrl.policies.load import load_policy
     from oodrl.suite import policy_path
 
@@ -202,21 +238,35 @@ def run_monitor(
         policy_path(env_id, root), "greedy", None, adapter.state_dim, adapter.action_size
     )
     if isinstance(detector, str) and not Path(detector).suffix:
-        detector = fitted_on_clean_streams(
-            adapter, policy, detector, detector_params or {}, fit_streams, steps
-        )
+        params = {"threshold_rule": "episode_max", "alpha": alpha, **(detector_params or {})}
+        detector = fitted_on_clean_streams(adapter, policy, detector, params, fit_streams, steps)
+    return adapter, policy, as_detector(detector)
+
+
+def _run_episode(
+    adapter: EnvironmentAdapter,
+    policy: Any,
+    detector: BaseDetector,
+    fault: str | None,
+    severity: float,
+    onset: int | None,
+    injector_params: Mapping[str, Any] | None,
+    steps: int,
+    seed: int,
+    echo: Callable[[str], None],
+) -> MonitorSummary:
+    """One monitored episode from `seed`, the fault live from `onset` (None: clean)."""
+    from oodrl.envs.collect import noise_rng
+
     env = adapter.make()
-    if fault is not None:
-        onset = default_onset(steps) if onset is None else onset
+    if fault is not None and onset is not None:
         live = live_fault(adapter, fault, severity, onset, injector_params or {}, seed)
         env = FaultInjection(env, adapter.handle(env), live, onset)
-    else:
-        onset = None
     monitored = OodMonitor(env, detector)
-    summary = _monitored_episode(monitored, policy, steps, onset, noise_rng(0, seed), seed, echo)
-    monitored.close()
-    echo(summary.line())
-    return summary
+    try:
+        return _monitored_episode(monitored, policy, steps, onset, noise_rng(0, seed), seed, echo)
+    finally:
+        monitored.close()
 
 
 def fitted_on_clean_streams(
@@ -227,11 +277,17 @@ def fitted_on_clean_streams(
     n: int,
     steps: int,
 ) -> BaseDetector:
-    """A registered detector fitted on `n` clean streams and calibrated on `n` more."""
+    """A registered detector fitted on `n` clean streams and calibrated on `n` more, or on the
+    ⌈1/α⌉ − 1 its per-stream rule needs at `params["alpha"]` if that is more."""
     from oodrl.detectors import DETECTORS
     from oodrl.envs.collect import collect
+    from oodrl.metrics.operating import min_calibration_streams
 
-    clean = collect(adapter, policy, range(10_000, 10_000 + 2 * n), steps).trajectories()
+    n_calibration = n
+    if params.get("threshold_rule") == "episode_max":
+        n_calibration = max(n, min_calibration_streams(params.get("alpha", DEFAULT_ALPHA)))
+    seeds = range(10_000, 10_000 + n + n_calibration)
+    clean = collect(adapter, policy, seeds, steps).trajectories()
     return DETECTORS.get(name)(**params).fit(clean[:n]).calibrate(clean[n:])
 
 
@@ -264,6 +320,7 @@ def _monitored_episode(
     first: StepScore | None = None
     raised_at = None
     false_alarms = 0
+    alarm_steps = []
     t = 0
     for t in range(steps):
         action = policy.act(np.asarray(observation, dtype=np.float32)[None], [rng])[0]
@@ -271,6 +328,7 @@ def _monitored_episode(
         for record in info["ood_scores"]:
             if not record.alarm:
                 continue
+            alarm_steps.append(record.step)
             echo(
                 f"step {t}: alarm for step {record.step}, score {record.score:.4g} >= "
                 f"{env.detector.threshold_:.4g}"
@@ -282,4 +340,131 @@ def _monitored_episode(
         if terminated or truncated:
             break
     first_step = None if first is None else first.step
-    return MonitorSummary(t + 1, onset, first_step, raised_at, false_alarms)
+    return MonitorSummary(t + 1, onset, first_step, raised_at, false_alarms, tuple(alarm_steps))
+
+
+@dataclass(frozen=True)
+class EpisodesSummary:
+    """`oodrl monitor --episodes N`: the operating point over N seeds (faulty episodes that
+    reach the onset; clean episodes of the same seeds), and how many episodes ended before the
+    onset (no fault acted on them: left out)."""
+
+    point: OperatingPoint
+    onset: int
+    seeds: tuple[int, int]
+    ended_before_onset: int
+    rule: str
+
+    def lines(self) -> list[str]:
+        record = self.point.as_dict()
+        low, high = record["detection_rate_ci"]
+        fa_low, fa_high = record["clean_false_alarm_ci"]
+        delay = record["delay"]
+        delays = (
+            f"delay median {delay['median']:g}, p90 {delay['p90']:g} steps "
+            f"({delay['n_detected']} streams alarmed after the onset)"
+            if delay["n_detected"]
+            else "no alarm after the onset"
+        )
+        p = self.point
+        return [
+            f"{p.n_faulty} faulty episodes (seeds {self.seeds[0]}..{self.seeds[1]}, fault from "
+            f"step {self.onset}; {self.ended_before_onset} ended before it, left out), "
+            f"alarm rule {self.rule}, threshold {p.threshold:.4g}:",
+            f"  detection_rate@{p.k}: {record['detection_rate']:.2f} "
+            f"[{low:.2f}, {high:.2f}] ({p.detected}/{p.n_faulty}); first alarm before the "
+            f"onset: {p.early_false_alarms}/{p.n_faulty}; {delays}",
+            f"  clean episodes with any alarm: {p.clean_false_alarms}/{p.n_clean} = "
+            f"{record['clean_false_alarm_rate']:.2f} [{fa_low:.2f}, {fa_high:.2f}] "
+            f"(nominal α {p.alpha:g}; 95% Clopper-Pearson intervals)",
+        ]
+
+
+def run_monitor_episodes(
+    env_id: str,
+    detector: str | BaseDetector | Path,
+    fault: str,
+    severity: float = 1.0,
+    *,
+    episodes: int,
+    k: int = 100,
+    steps: int = 500,
+    onset: int | None = None,
+    seed: int = 0,
+    detector_params: Mapping[str, Any] | None = None,
+    injector_params: Mapping[str, Any] | None = None,
+    fit_streams: int = 8,
+    alpha: float = DEFAULT_ALPHA,
+    root: Path = Path("."),
+    echo: Callable[[str], None] = print,
+) -> EpisodesSummary:
+    """`run_monitor` over the seeds seed..seed + episodes − 1, each once with the fault and once
+    clean: detection_rate@K (the first alarm raised in [t*, t* + K], an alarm on step t raised at
+    t + latency as in `oodrl.metrics.operating`), delays, first alarms before the onset, and the
+    share of clean episodes with any alarm."""
+    from oodrl.metrics.operating import first_raise
+
+    adapter, policy, detector = _monitor_setup(
+        env_id, detector, detector_params, fit_streams, steps, alpha, root
+    )
+    onset = default_onset(steps) if onset is None else onset
+    seeds = range(seed, seed + episodes)
+    raised, clean_alarms, ended = [], [], 0
+    never = np.iinfo(np.int64).max  # a first raise that never comes: beyond any K
+    for s in seeds:
+        run = _run_episode(
+            adapter, policy, detector, fault, severity, onset, injector_params, steps, s, _quiet
+        )
+        clean = _run_episode(adapter, policy, detector, None, 0.0, None, None, steps, s, _quiet)
+        clean_alarms.append(bool(clean.alarm_steps))
+        if run.steps <= onset:
+            ended += 1
+            continue
+        first = int(first_raise(run.alarms()[None], detector.latency)[0])
+        raised.append(first if first < run.steps else never)
+    if not raised:
+        raise ConfigError(
+            f"Every one of the {episodes} episodes ended before the onset at step {onset}: "
+            "choose an earlier --onset."
+        )
+    rule = detector.threshold_rule + (
+        f" (α = {detector.alpha:g})" if detector.threshold_rule == "episode_max" else ""
+    )
+    point = _operating_point(np.array(raised), np.array(clean_alarms), onset, k, detector, alpha)
+    summary = EpisodesSummary(point, onset, (seeds[0], seeds[-1]), ended, rule)
+    for line in summary.lines():
+        echo(line)
+    return summary
+
+
+def _quiet(line: str) -> None:
+    """Over many episodes the rates are the report, not each alarm."""
+
+
+def _operating_point(
+    raised: np.ndarray,
+    clean_alarms: np.ndarray,
+    onset: int,
+    k: int,
+    detector: BaseDetector,
+    alpha: float,
+) -> OperatingPoint:
+    """The operating point of first raises (one per faulty episode; never = int64 max)."""
+    from oodrl.metrics.operating import detection_rate
+
+    never = np.iinfo(np.int64).max
+    after = (raised >= onset) & (raised < never)
+    nominal = detector.alpha if detector.threshold_rule == "episode_max" else alpha
+    return OperatingPoint(
+        alpha=float(nominal),
+        threshold=float(detector.threshold_),
+        k=k,
+        n_faulty=len(raised),
+        detected=int(np.sum(after & (raised <= onset + k))),
+        early_false_alarms=int(np.sum(raised < onset)),
+        delays=tuple(int(d) for d in raised[after] - onset),
+        curve={kk: detection_rate(raised, onset, kk, never) for kk in range(0, k + 1, 10)},
+        n_clean=len(clean_alarms),
+        clean_false_alarms=int(np.sum(clean_alarms)),
+        confidence=0.95,
+    )
