@@ -50,8 +50,8 @@ QUOTED_TAUS = (0.9, 1.0)
 #: Where the log axis of the optimality-gap figure draws a gap of exactly 0.
 GAP_FLOOR = 1e-4
 
-#: Results files (one or several) by (environment, policy), or by environment for policy "0".
-ResultsPaths = Mapping[tuple[str, str] | str, Path | Sequence[Path]]
+#: Results files by (environment, policy), or by environment for its policy "0".
+ResultsPaths = Mapping[tuple[str, str] | str, Path]
 #: criterion → (environment, policy, fault) → detector → return loss, or "beyond range".
 MinimumDetectableImpact = dict[str, dict[tuple[str, str, str], dict[str, float | str]]]
 
@@ -74,72 +74,54 @@ def _run_key(key: tuple[str, str] | str) -> tuple[str, str]:
     return (key, FIRST_POLICY) if isinstance(key, str) else (str(key[0]), str(key[1]))
 
 
-def _paths(paths: Path | Sequence[Path]) -> list[Path]:
-    return [Path(paths)] if isinstance(paths, str | Path) else [Path(p) for p in paths]
-
-
 def read_inputs(results: ResultsPaths) -> Inputs:
-    """Every results file's per-episode values by metric and cell, its version, α and MDI.
-
-    Within a tier every record must hold the same per-episode metrics (headline records hold
-    matched AUROC alone, tier records also `detection_rate@K`); one (cell, detector) comes
-    from one record.
-    """
+    """Every results file's per-episode values by metric and cell, its version, α and MDI."""
     from oodrl.errors import StoreError
 
     documents: dict[str, Any] = {}
     cells: dict[str, dict[Cell, dict[str, list[float]]]] = {}
-    metrics_of: dict[tuple[Cell, str], tuple[Path, set[str]]] = {}
+    metrics_of: dict[tuple[str, Cell, str], set[str]] = {}
     alphas: set[float] = set()
     mdi: MinimumDetectableImpact = {}
     uncertified: set[str] = set()
-    for key, paths in results.items():
+    for key, path in results.items():
         env_id, policy = _run_key(key)
-        for path in _paths(paths):
-            if not path.is_file():
+        if not Path(path).is_file():
+            raise StoreError(f"{path}: results of {env_id} are missing; build its pipeline first.")
+        document = yamlio.load(Path(path).read_text())
+        documents[str(path)] = document
+        uncertified.update(document.get(UNCERTIFIED) or ())
+        for record in document["records"]:
+            if record["kind"] != "anomaly":
+                continue
+            episodes = record.get("episodes") or {}
+            if MATCHED_AUROC not in episodes:
                 raise StoreError(
-                    f"{path}: results of {env_id} are missing; build its pipeline first."
+                    f"{path}: records lack per-episode {MATCHED_AUROC}; re-run {env_id}'s "
+                    f"metrics stage."
                 )
-            document = yamlio.load(path.read_text())
-            documents[str(path)] = document
-            uncertified.update(document.get(UNCERTIFIED) or ())
-            for record in document["records"]:
-                if record["kind"] != "anomaly":
-                    continue
-                episodes = record.get("episodes") or {}
-                if MATCHED_AUROC not in episodes:
-                    raise StoreError(
-                        f"{path}: records lack per-episode {MATCHED_AUROC}; re-run {env_id}'s "
-                        f"metrics stage."
-                    )
-                tier = record.get("tier", HEADLINE_TIER)
-                cell = Cell(env_id, policy, record_injector(record), tier)
-                detector = record["detector"]
-                if (cell, detector) in metrics_of:
-                    raise StoreError(
-                        f"{path}: a second record of {detector} on {tuple(cell)} (the first in "
-                        f"{metrics_of[(cell, detector)][0]})."
-                    )
-                metrics_of[(cell, detector)] = (path, set(episodes))
-                for metric, values in episodes.items():
-                    cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
-                alpha = (record.get(OPERATING_POINT) or {}).get("alpha")
-                if alpha is not None:
-                    alphas.add(float(alpha))
-            for detector, faults in (document.get(MINIMUM_DETECTABLE_IMPACT) or {}).items():
-                for fault, criteria in faults.items():
-                    for criterion, value in criteria.items():
-                        row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
-                        row[detector] = value
-    in_tier: dict[str, set[str]] = {}
-    for (cell, _), (_, found) in metrics_of.items():
-        in_tier.setdefault(cell.tier, set()).update(found)
-    for (cell, detector), (path, found) in metrics_of.items():
-        if found != in_tier[cell.tier]:
+            cell = Cell(env_id, policy, record_injector(record), record.get("tier", HEADLINE_TIER))
+            detector = record["detector"]
+            if (str(path), cell, detector) in metrics_of:
+                raise StoreError(f"{path}: two records of {detector} on {tuple(cell)}.")
+            metrics_of[(str(path), cell, detector)] = set(episodes)
+            for metric, values in episodes.items():
+                cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
+            alpha = (record.get(OPERATING_POINT) or {}).get("alpha")
+            if alpha is not None:
+                alphas.add(float(alpha))
+        for detector, faults in (document.get(MINIMUM_DETECTABLE_IMPACT) or {}).items():
+            for fault, criteria in faults.items():
+                for criterion, value in criteria.items():
+                    row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
+                    row[detector] = value
+    every = set().union(*metrics_of.values()) if metrics_of else set()
+    for (path, cell, detector), found in metrics_of.items():
+        if found != every:
             raise StoreError(
                 f"{path}: {detector} on {tuple(cell)} lacks per-episode "
-                f"{', '.join(sorted(in_tier[cell.tier] - found))}, which other records of tier "
-                f"{cell.tier} have; re-run its metrics stage."
+                f"{', '.join(sorted(every - found))}, which other records have; re-run its "
+                f"metrics stage."
             )
     version = one_protocol_version(documents)
     alpha = next(iter(alphas)) if len(alphas) == 1 else None
