@@ -33,7 +33,7 @@ def write_results(
     for tier in tiers:
         for anomaly in ("gaussian_state_noise", "stuck_actuator", "gradual_drift"):
             for d in strength:
-                shift = {"mild": -0.2, "severe": 0.0, None: 0.0}[tier]
+                shift = {"mild": -0.2, "moderate": -0.1}.get(tier, 0.0)
                 episodes = np.clip(strength[d] + shift + 0.05 * rng.standard_normal(6), 0, 1)
                 record = {
                     "kind": "anomaly", "detector": d, "injector": anomaly, "mode": "posthoc",
@@ -100,9 +100,8 @@ def test_todays_results_build_the_headline_table_and_reproduce(results, tmp_path
 def test_tiers_policies_operating_points_flags_and_mdi(tmp_path: Path):
     strength = {"cusum": 0.9, "kde_density": 0.6, "pedm": 0.7, "time_index": 0.97}
     mdi = {"minimum_detectable_impact": {
-        "cusum": {"gradual_drift": {"matched AUROC reaches 0.9": 0.031,
-                                    "detection_rate@100 reaches 0.9": "beyond range"}},
-        "pedm": {"gradual_drift": {"matched AUROC reaches 0.9": 0.12}},
+        "cusum": {"gradual_drift": {"matched_auroc": 0.031, "detection_rate@100": "beyond range"}},
+        "pedm": {"gradual_drift": {"matched_auroc": 0.12}},
     }}  # fmt: skip
     results = {
         (env, policy): write_results(
@@ -134,7 +133,11 @@ def test_tiers_policies_operating_points_flags_and_mdi(tmp_path: Path):
     assert "Kendall τ between per-policy rankings (by IQM): 0–1:" in text
     # time_index (0.97, −0.2 at mild) detects every cell at severe: all flagged there.
     assert "CartPole-v1 / gradual_drift / severe | time_index" in text
-    assert "## Minimum detectable impact: the smallest return loss at which matched AUROC" in text
+    assert "| time_index (trivial signal) |" in text
+    assert (
+        "## Minimum detectable impact: the smallest return loss 1 − R̃ at which matched AUROC "
+        "reaches 0.9" in text
+    )
     assert "| CartPole-v1 / policy 0 / gradual_drift | 3.1% | 12.0% |" in text
     assert "| beyond range |" in text
     document = yamlio.load((tmp_path / "out" / "leaderboard.yaml").read_text())
@@ -172,3 +175,47 @@ def test_missing_old_or_partial_results_are_one_line_errors(results, tmp_path: P
     )
     with pytest.raises(StoreError, match="lacks per-episode detection_rate@100"):
         read_inputs(results | {"Hopper-v5": partial})
+
+
+def test_the_stage_reads_headline_and_tier_results_of_every_environment(tmp_path: Path):
+    from oodrl.config import parse_params
+    from oodrl.stages.leaderboard import HEADLINE_RESULTS, TIER_RESULTS, results_files, run
+    from oodrl.suite import PIPELINE_DIRS
+
+    strength = {"cusum": 0.9, "kde_density": 0.6, "pedm": 0.7}
+    stamp = {"protocol_version": 2, "params_hash": "sha256:0"}
+    for seed, directory in enumerate(PIPELINE_DIRS.values()):
+        write_results(tmp_path / directory / HEADLINE_RESULTS, seed, strength, extra=stamp)
+        if seed < 3:  # the impact tiers scored in three environments
+            write_results(
+                tmp_path / directory / TIER_RESULTS, 100 + seed, strength,
+                tiers=("mild", "moderate"), detection=True, extra=stamp,
+            )  # fmt: skip
+    files = results_files(tmp_path)
+    assert set(files) == {(env, "0") for env in PIPELINE_DIRS}
+    assert sum(len(paths) for paths in files.values()) == len(PIPELINE_DIRS) + 3
+    params = parse_params(
+        {"benchmark": {"detectors": ["cusum"], "injectors": ["gradual_drift"]},
+         "detectors": {"cusum": {}}, "anomaly": {"injectors": {"gradual_drift": {}}},
+         "metrics": {"n_boot": 50}},
+        "params", components=False,
+    )  # fmt: skip
+    run(params, tmp_path, tmp_path / "out")
+    text = (tmp_path / "out" / "leaderboard.md").read_text()
+    headings = [
+        line.split(" per detector")[0] for line in text.splitlines() if line.startswith("## Tier")
+    ]
+    assert headings == [
+        "## Tier `mild`: mean detection_rate@100 at α = 0.05",
+        "## Tier `mild`: mean matched AUROC",
+        "## Tier `moderate`: mean detection_rate@100 at α = 0.05",
+        "## Tier `moderate`: mean matched AUROC",
+        "## Tier `headline`: mean matched AUROC",
+    ]
+    assert f"({len(PIPELINE_DIRS) * 3} cells)" in text  # the headline tier: every environment
+
+
+def test_one_cell_one_record(results, tmp_path: Path):
+    again = {"CartPole-v1": [results["CartPole-v1"], results["CartPole-v1"]]}
+    with pytest.raises(StoreError, match="a second record of cusum on"):
+        read_inputs(again)

@@ -386,10 +386,17 @@ class Board:
     #: (metric, tier) → the aggregate without the flagged tasks, where some but not all are.
     unflagged: dict[tuple[str, str], Aggregate]
 
+    def order(self) -> list[tuple[str, str]]:
+        """Every (metric, tier) aggregated: tiers mild first, within one `detection_rate@K`
+        first."""
+        return sorted(
+            self.overall, key=lambda k: (self.tiers.index(k[1]), self.metrics.index(k[0]))
+        )
+
     @property
     def lead(self) -> tuple[str, str]:
-        """The (metric, tier) the leaderboard leads with: the first metric at the first tier."""
-        return self.metrics[0], self.tiers[0]
+        """The (metric, tier) the leaderboard leads with: the first of `order`."""
+        return self.order()[0]
 
 
 def build_board(

@@ -43,6 +43,8 @@ OPERATING_POINT = "operating_point"
 #: A results document's minimum-detectable-impact section.
 MINIMUM_DETECTABLE_IMPACT = "minimum_detectable_impact"
 BEYOND_RANGE = "beyond range"
+#: The level a criterion of the minimum detectable impact must reach (SPEC §15).
+MDI_LEVEL = 0.9
 #: Human names of the leaderboard's metrics (others print as named).
 METRIC_LABELS = {MATCHED_AUROC: "matched AUROC"}
 #: The performance-profile thresholds the tables quote (the figure draws every τ).
@@ -50,8 +52,8 @@ QUOTED_TAUS = (0.9, 1.0)
 #: Where the log axis of the optimality-gap figure draws a gap of exactly 0.
 GAP_FLOOR = 1e-4
 
-#: Results files by (environment, policy), or by environment for its policy "0".
-ResultsPaths = Mapping[tuple[str, str] | str, Path]
+#: Results files (one or several) by (environment, policy), or by environment for policy "0".
+ResultsPaths = Mapping[tuple[str, str] | str, Path | Sequence[Path]]
 #: criterion → (environment, policy, fault) → detector → return loss, or "beyond range".
 MinimumDetectableImpact = dict[str, dict[tuple[str, str, str], dict[str, float | str]]]
 
@@ -74,54 +76,72 @@ def _run_key(key: tuple[str, str] | str) -> tuple[str, str]:
     return (key, FIRST_POLICY) if isinstance(key, str) else (str(key[0]), str(key[1]))
 
 
+def _paths(paths: Path | Sequence[Path]) -> list[Path]:
+    return [Path(paths)] if isinstance(paths, str | Path) else [Path(p) for p in paths]
+
+
 def read_inputs(results: ResultsPaths) -> Inputs:
-    """Every results file's per-episode values by metric and cell, its version, α and MDI."""
+    """Every results file's per-episode values by metric and cell, its version, α and MDI.
+
+    Within a tier every record must hold the same per-episode metrics (headline records hold
+    matched AUROC alone, tier records also `detection_rate@K`); one (cell, detector) comes
+    from one record.
+    """
     from oodrl.errors import StoreError
 
     documents: dict[str, Any] = {}
     cells: dict[str, dict[Cell, dict[str, list[float]]]] = {}
-    metrics_of: dict[tuple[str, Cell, str], set[str]] = {}
+    metrics_of: dict[tuple[Cell, str], tuple[Path, set[str]]] = {}
     alphas: set[float] = set()
     mdi: MinimumDetectableImpact = {}
     uncertified: set[str] = set()
-    for key, path in results.items():
+    for key, paths in results.items():
         env_id, policy = _run_key(key)
-        if not Path(path).is_file():
-            raise StoreError(f"{path}: results of {env_id} are missing; build its pipeline first.")
-        document = yamlio.load(Path(path).read_text())
-        documents[str(path)] = document
-        uncertified.update(document.get(UNCERTIFIED) or ())
-        for record in document["records"]:
-            if record["kind"] != "anomaly":
-                continue
-            episodes = record.get("episodes") or {}
-            if MATCHED_AUROC not in episodes:
+        for path in _paths(paths):
+            if not path.is_file():
                 raise StoreError(
-                    f"{path}: records lack per-episode {MATCHED_AUROC}; re-run {env_id}'s "
-                    f"metrics stage."
+                    f"{path}: results of {env_id} are missing; build its pipeline first."
                 )
-            cell = Cell(env_id, policy, record_injector(record), record.get("tier", HEADLINE_TIER))
-            detector = record["detector"]
-            if (str(path), cell, detector) in metrics_of:
-                raise StoreError(f"{path}: two records of {detector} on {tuple(cell)}.")
-            metrics_of[(str(path), cell, detector)] = set(episodes)
-            for metric, values in episodes.items():
-                cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
-            alpha = (record.get(OPERATING_POINT) or {}).get("alpha")
-            if alpha is not None:
-                alphas.add(float(alpha))
-        for detector, faults in (document.get(MINIMUM_DETECTABLE_IMPACT) or {}).items():
-            for fault, criteria in faults.items():
-                for criterion, value in criteria.items():
-                    row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
-                    row[detector] = value
-    every = set().union(*metrics_of.values()) if metrics_of else set()
-    for (path, cell, detector), found in metrics_of.items():
-        if found != every:
+            document = yamlio.load(path.read_text())
+            documents[str(path)] = document
+            uncertified.update(document.get(UNCERTIFIED) or ())
+            for record in document["records"]:
+                if record["kind"] != "anomaly":
+                    continue
+                episodes = record.get("episodes") or {}
+                if MATCHED_AUROC not in episodes:
+                    raise StoreError(
+                        f"{path}: records lack per-episode {MATCHED_AUROC}; re-run {env_id}'s "
+                        f"metrics stage."
+                    )
+                tier = record.get("tier", HEADLINE_TIER)
+                cell = Cell(env_id, policy, record_injector(record), tier)
+                detector = record["detector"]
+                if (cell, detector) in metrics_of:
+                    raise StoreError(
+                        f"{path}: a second record of {detector} on {tuple(cell)} (the first in "
+                        f"{metrics_of[(cell, detector)][0]})."
+                    )
+                metrics_of[(cell, detector)] = (path, set(episodes))
+                for metric, values in episodes.items():
+                    cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
+                alpha = (record.get(OPERATING_POINT) or {}).get("alpha")
+                if alpha is not None:
+                    alphas.add(float(alpha))
+            for detector, faults in (document.get(MINIMUM_DETECTABLE_IMPACT) or {}).items():
+                for fault, criteria in faults.items():
+                    for criterion, value in criteria.items():
+                        row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
+                        row[detector] = value
+    in_tier: dict[str, set[str]] = {}
+    for (cell, _), (_, found) in metrics_of.items():
+        in_tier.setdefault(cell.tier, set()).update(found)
+    for (cell, detector), (path, found) in metrics_of.items():
+        if found != in_tier[cell.tier]:
             raise StoreError(
                 f"{path}: {detector} on {tuple(cell)} lacks per-episode "
-                f"{', '.join(sorted(every - found))}, which other records have; re-run its "
-                f"metrics stage."
+                f"{', '.join(sorted(in_tier[cell.tier] - found))}, which other records of tier "
+                f"{cell.tier} have; re-run its metrics stage."
             )
     version = one_protocol_version(documents)
     alpha = next(iter(alphas)) if len(alphas) == 1 else None
@@ -173,7 +193,8 @@ def _section(
         header.append(f"IQM without flagged cells ({unflagged.n_cells}) [95% CI]")
     rows = []
     for d in order:
-        row = [marked(d, uncertified), *(f"{overall.table[d][e]:.3f}" for e in envs)]
+        name = marked(d, uncertified) + (" (trivial signal)" if d in TRIVIAL_DETECTORS else "")
+        row = [name, *(f"{overall.table[d][e]:.3f}" for e in envs)]
         row += [_interval(overall.iqm[d]), _interval(overall.mean[d])]
         if unflagged is not None:
             row.append(_interval(unflagged.iqm[d]))
@@ -272,7 +293,7 @@ def _flag_lines(board: Board, detectors: Sequence[str]) -> list[str]:
     return [*lines, rule, "", *_table(["cell", "trivial signal (matched AUROC)"], rows), ""]
 
 
-def _mdi_lines(mdi: MinimumDetectableImpact) -> list[str]:
+def _mdi_lines(mdi: MinimumDetectableImpact, alpha: float | None) -> list[str]:
     lines = []
     for criterion, rows in sorted(mdi.items()):
         detectors = sorted({d for row in rows.values() for d in row})
@@ -291,7 +312,8 @@ def _mdi_lines(mdi: MinimumDetectableImpact) -> list[str]:
                     cells.append(f"{100 * float(value):.1f}%")
             table_rows.append([name, *cells])
         lines += [
-            f"## Minimum detectable impact: the smallest return loss at which {criterion}",
+            f"## Minimum detectable impact: the smallest return loss 1 − R̃ at which "
+            f"{metric_label(criterion, alpha)} reaches {MDI_LEVEL:g}",
             "",
             *_table(["environment / fault", *detectors], table_rows),
             "",
@@ -325,13 +347,12 @@ def markdown(
         f"{', '.join(metric_label(m, alpha) for m in board.metrics)}.",
         "",
     ]
-    keys = [board.lead] + [k for k in board.overall if k != board.lead]
-    for metric, tier in sorted(keys, key=lambda k: (board.tiers.index(k[1]), keys.index(k))):
+    for metric, tier in board.order():
         lines += _section(board, metric, tier, alpha, uncertified)
     if uncertified:
         lines += ["## Machine independence", "", certification_note(uncertified), ""]
     lines += _flag_lines(board, lead.detectors)
-    lines += _mdi_lines(minimum_detectable_impact or {})
+    lines += _mdi_lines(minimum_detectable_impact or {}, alpha)
     return "\n".join(lines).rstrip("\n") + "\n"
 
 

@@ -6,16 +6,32 @@ from pathlib import Path
 
 from oodrl.config import Params
 
+#: A pipeline's results at the headline severity (always there) and at the impact tiers
+#: (where the pipeline scores them), relative to its directory.
+HEADLINE_RESULTS = Path("reports/results.yaml")
+TIER_RESULTS = Path("reports/tier_results.yaml")
 
-def run(params: Params, root: Path, out_dir: Path) -> None:
+
+def results_files(root: Path) -> dict[tuple[str, str], list[Path]]:
+    """(environment, policy) → the results files the leaderboard reads.
+
+    One committed policy per environment today: each pipeline's results are its policy "0".
+    """
     from oodrl.metrics.leaderboard import FIRST_POLICY
-    from oodrl.report.leaderboard import run_leaderboard
     from oodrl.suite import PIPELINE_DIRS
 
-    # One committed policy per environment today: each pipeline's results are its policy "0".
-    results = {
-        (env, FIRST_POLICY): root / d / "reports" / "results.yaml"
-        for env, d in PIPELINE_DIRS.items()
-    }
+    files = {}
+    for env, directory in PIPELINE_DIRS.items():
+        tiers = root / directory / TIER_RESULTS
+        files[(env, FIRST_POLICY)] = [
+            root / directory / HEADLINE_RESULTS,
+            *([tiers] if tiers.is_file() else []),
+        ]
+    return files
+
+
+def run(params: Params, root: Path, out_dir: Path) -> None:
+    from oodrl.report.leaderboard import run_leaderboard
+
     m = params.metrics
-    run_leaderboard(results, out_dir, n_boot=m.n_boot, ci=m.ci, seed=params.seed)
+    run_leaderboard(results_files(root), out_dir, n_boot=m.n_boot, ci=m.ci, seed=params.seed)
