@@ -314,3 +314,24 @@ def test_results_and_leaderboard_mark_uncertified_detectors_per_row(tmp_path):
     run_leaderboard(paths, tmp_path / "plain", n_boot=50, ci=0.95, seed=0)
     assert "†" not in (tmp_path / "plain" / "leaderboard.md").read_text()
     assert "uncertified_detectors" not in (tmp_path / "plain" / "leaderboard.yaml").read_text()
+
+
+def test_the_peer_families_blocks_validate_fit_and_stream(default_params):
+    """Every block of src/oodrl/library_detectors.yaml passes params validation as a params
+    file would hold it, and fits, scores and streams (streams equal to batch bit for bit)."""
+    from pathlib import Path
+
+    import oodrl
+    from oodrl.config import parse_params
+
+    blocks = yaml.safe_load((Path(oodrl.__file__).parent / "library_detectors.yaml").read_text())
+    assert set(blocks) == {"pyod_knn", "pyod_iforest", "pyod_lof", "pyod_ecod", "pyod_hbos",
+                           "time_index"}  # fmt: skip
+    default_params["benchmark"]["detectors"] = list(blocks)
+    default_params["detectors"] = blocks
+    params = parse_params(default_params)
+    fit, _, evaluation = splits(DISCRETE)
+    for name in blocks:
+        detector = params.detector(name).fit(fit)
+        assert detector.machine_independent == (name == "time_index")
+        check_streaming(detector, evaluation[:1])
