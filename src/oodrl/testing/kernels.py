@@ -3,16 +3,23 @@
 Math libraries pick a SIMD kernel per CPU at run time; these environment variables make them pick
 another one on this machine, as an older or different CPU would. oodrl's outputs must not change.
 Each variable has to be set before its library loads, so the selections apply to subprocesses.
+
+The promise covers the detectors certified machine-independent (`machine_independent`, SPEC
+§17): the checks run those (`certified_only`); a library detector's outputs
+(`detector_outputs`) may or may not come out identical, which `benchmarks/library_kernels.py`
+reports.
 """
 
 from __future__ import annotations
 
+import copy
 import hashlib
 import json
 import subprocess
 import sys
 from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 #: Name → environment. "avx2" is a Haswell-class machine; "baseline" an x86-64-v2 one (SSE4.2).
 _SELECTIONS: dict[str, dict[str, str]] = {
@@ -45,6 +52,36 @@ def kernel_selections() -> dict[str, dict[str, str]]:
         name: {k: v for k, v in selection.items() if k not in pinned}
         for name, selection in _SELECTIONS.items()
     }
+
+
+def uncertified_detectors(params_data: Mapping[str, Any]) -> list[str]:
+    """The detectors of `benchmark.detectors` not certified machine-independent (merged params
+    data, as `oodrl.config.read_params_data` gives it)."""
+    from oodrl.config import parse_params
+
+    params = parse_params(dict(params_data), components=False)
+    return [
+        name
+        for name in params.benchmark.detectors
+        if not params.detector_class(name).machine_independent
+    ]
+
+
+def certified_only(params_data: Mapping[str, Any]) -> tuple[dict[str, Any], list[str]]:
+    """The params with only the certified detectors in `benchmark.detectors`, and the names
+    left out: byte-identical outputs are promised for those only."""
+    left_out = uncertified_detectors(params_data)
+    data = copy.deepcopy(dict(params_data))
+    data["benchmark"]["detectors"] = [
+        name for name in data["benchmark"]["detectors"] if name not in left_out
+    ]
+    return data, left_out
+
+
+def detector_outputs(hashes: Mapping[str, str], detector: str) -> dict[str, str]:
+    """The files of `output_hashes` that one detector wrote: its model and its score stores."""
+    own = (f"models/{detector}.pkl", f"scores/{detector}/")
+    return {path: digest for path, digest in hashes.items() if path.startswith(own)}
 
 
 #: The stages the check runs: collection (clean, and each injector at the headline and sweep
