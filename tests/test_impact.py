@@ -182,9 +182,8 @@ def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
     def impact(name: str, *extra: str):
         return CliRunner().invoke(
             app,
-            ["impact", "--policy", policy, "--out", f"{name}.yaml", "--table", f"{name}.md",
-             "--figure", f"{name}.png", "--injector", "gaussian_state_noise", "--episodes", "3",
-             *extra],
+            ["impact", "gaussian_state_noise", "--policy", policy, "--out", f"{name}.yaml",
+             "--table", f"{name}.md", "--figure", f"{name}.png", "--episodes", "3", *extra],
         )  # fmt: skip
 
     for name in ("first", "second"):
@@ -200,3 +199,23 @@ def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
     bad = impact("bad", "--grid", "0.5,0.2")
     assert bad.exit_code == 2 and "--grid must be increasing" in bad.output
     assert not (tmp_path / "bad.yaml").exists()
+
+
+def test_minimum_detectable_impacts_from_a_sweep_document(document):
+    from oodrl.impact import minimum_detectable_impacts, sweep_metric
+
+    summary = lambda value: {"matched_auroc": {"mean": value}}  # noqa: E731
+    sweep = {
+        "sweep": {
+            "strong": {0.2: {"a": summary(0.8), "b": summary(0.5)},
+                       0.4: {"a": summary(1.0), "b": summary(0.6)}},
+            "not_calibrated": {0.2: {"a": summary(1.0)}},
+        }
+    }  # fmt: skip
+    table = minimum_detectable_impacts(document, sweep_metric(sweep))
+    # Detector a reaches 0.9 at σ = 0.3, on the linear closed-form curve of "strong".
+    clean, random = document["clean_return"], document["random_return"]
+    expected_loss = COST * 4.5 * 1.5 * 0.3 / (clean - random)
+    assert table["a"]["strong"] == pytest.approx(expected_loss, abs=1e-5)
+    assert table["b"]["strong"] == BEYOND_RANGE
+    assert "not_calibrated" not in table["a"]

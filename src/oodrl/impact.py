@@ -286,6 +286,44 @@ def minimum_detectable_impact(
     return round(loss, 6) + 0.0
 
 
+def impact_curve_points(record: Mapping[str, Any]) -> tuple[list[float], list[float]]:
+    """A fault's monotone impact curve from its impact.yaml record, σ = 0 (R̃ = 1) included."""
+    curve = record["curve"]
+    return [0.0, *(p["severity"] for p in curve)], [1.0, *(p["monotone"] for p in curve)]
+
+
+def minimum_detectable_impacts(
+    impact: Mapping[str, Any],
+    metric_by_severity: Mapping[str, Mapping[str, Mapping[float, float]]],
+    target: float = 0.9,
+) -> dict[str, dict[str, float | str]]:
+    """Per detector and fault: `minimum_detectable_impact` of a metric given as
+    {fault: {detector: {severity: value}}} (e.g. matched AUROC from sweep_results.yaml), on the
+    fault's impact curve in an impact document; faults without an impact record are left out."""
+    table: dict[str, dict[str, float | str]] = {}
+    for fault, per_detector in sorted(metric_by_severity.items()):
+        if fault not in impact["faults"]:
+            continue
+        xs, curve = impact_curve_points(impact["faults"][fault])
+        for detector, values in sorted(per_detector.items()):
+            severities = sorted(values)
+            table.setdefault(detector, {})[fault] = minimum_detectable_impact(
+                xs, curve, severities, [values[s] for s in severities], target
+            )
+    return table
+
+
+def sweep_metric(sweep: Mapping[str, Any], metric: str = "matched_auroc"):
+    """{fault: {detector: {severity: mean}}} of a metric in a sweep_results.yaml document."""
+    out: dict[str, dict[str, dict[float, float]]] = {}
+    for fault, by_severity in sweep["sweep"].items():
+        for severity, by_detector in by_severity.items():
+            for detector, summary in by_detector.items():
+                value = summary[metric]["mean"]
+                out.setdefault(fault, {}).setdefault(detector, {})[float(severity)] = value
+    return out
+
+
 def calibrate_impact(
     adapter: EnvironmentAdapter,
     policy: Policy,
