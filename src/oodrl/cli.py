@@ -305,6 +305,39 @@ def show(
     typer.echo(render(path, max_us_per_step))
 
 
+@command("new")
+def new(
+    name: Annotated[str, typer.Argument(help="the pipeline's directory: pipeline/NAME")],
+    env: Annotated[str, typer.Option(help="any Gymnasium id with a flat Box observation")],
+    policy: Annotated[
+        str | None,
+        typer.Option(
+            help="SB3 .zip (vecnormalize.pkl beside it is used), RL Zoo run folder, oodrl "
+            "checkpoint, or module:function"
+        ),
+    ] = None,
+    train: Annotated[
+        str | None, typer.Option(help="train one instead with SB3: sac, ppo or dqn")
+    ] = None,
+    steps: Annotated[
+        int, typer.Option(min=1, help="--train's budget in environment steps")
+    ] = 50_000,
+    T: Annotated[  # noqa: N803 - the protocol's name
+        int | None, typer.Option("--T", min=3, help="steps per stream (default: episode length)")
+    ] = None,
+    episodes: Annotated[int, typer.Option(min=1, help="held-out episodes of the report")] = 10,
+    seed: Annotated[int, typer.Option(min=0, help="--train's seed")] = 0,
+    root: Annotated[Path, typer.Option(help="the project root")] = Path("."),
+) -> None:
+    """Make pipeline/NAME for your agent in any Gymnasium environment (SPEC §18)."""
+    from oodrl.new import new_pipeline, summary
+
+    made = new_pipeline(
+        root, name, env, policy=policy, train=train, steps=steps, T=T, episodes=episodes, seed=seed
+    )
+    typer.echo(summary(made, root))
+
+
 # -- stage verbs (dvc.yaml is their caller) ---------------------------------------------------
 @command("train-policy")
 def train_policy(

@@ -535,7 +535,12 @@ SUITE_DIR = Path(ENVIRONMENTS_DIR) / "suite"
 def rendered_suite(root: Path) -> str:
     """pipeline/suite/dvc.yaml: one stage reading every environment's results."""
     project = Project(root.resolve(), (root / SUITE_DIR).resolve())
-    environments = [d for d in pipeline_dirs(root)]
+    from oodrl.suite import PIPELINE_DIRS
+
+    # The suite's environments only, as the leaderboard reads them: a pipeline `oodrl new`
+    # made stays off the leaderboard unless it is added to PIPELINE_DIRS (SPEC §18).
+    suite = {(root / d).resolve() for d in PIPELINE_DIRS.values()}
+    environments = [d for d in pipeline_dirs(root) if d.resolve() in suite]
     code = sorted(project.relative(p) for p in project.command_closure("leaderboard"))
     stage = {
         "cmd": "oodrl leaderboard --out reports",

@@ -326,3 +326,122 @@ def _sb3_version() -> str:
     import stable_baselines3
 
     return str(stable_baselines3.__version__)
+
+
+def convert_checkpoint(
+    path: Path, env_id: str, policy_path: Path, report_path: Path, *, episodes: int, seed: int
+) -> dict[str, Any]:
+    """An oodrl checkpoint made elsewhere, saved with this pipeline's imported settings."""
+    import torch
+
+    from oodrl.policies.checkpoint import CHECKPOINT_FORMAT
+    from oodrl.policies.settings import ImportedConfig
+
+    started = time.perf_counter()
+    data = path.read_bytes()
+    try:
+        checkpoint = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for foreign bytes
+        raise PolicyError(
+            f"{path}: not an oodrl checkpoint, a Stable-Baselines3 .zip or an RL Zoo folder "
+            f"(torch.load: {type(error).__name__})."
+        ) from None
+    if not isinstance(checkpoint, dict) or checkpoint.get("format") != CHECKPOINT_FORMAT:
+        raise PolicyError(
+            f"{path}: not an oodrl checkpoint, a Stable-Baselines3 .zip or an RL Zoo folder."
+        )
+    config = ImportedConfig(
+        env_id=env_id,
+        source="oodrl checkpoint",
+        file=path.name,
+        sha256=hashlib.sha256(data).hexdigest(),
+    )
+    return save_imported(
+        policy_path,
+        report_path,
+        dict(checkpoint["architecture"]),
+        dict(checkpoint["state_dict"]),
+        config,
+        episodes=episodes,
+        seed=seed,
+        steps_run=0,
+        started=started,
+        trainer={"algorithm": "imported"},
+    )
+
+
+def save_callable(
+    function: str, env_id: str, policy_path: Path, report_path: Path, *, episodes: int, seed: int
+) -> dict[str, Any]:
+    """A ``module:function`` policy: its pointer as the policy file (SPEC §18: not certified
+    machine-independent, its code is not hashed into the data), and its report."""
+    import json
+
+    from oodrl.envs import ENVIRONMENTS
+    from oodrl.fileio import atomic_write_bytes
+    from oodrl.policies.evaluate import evaluate_policy
+    from oodrl.policies.load import CALLABLE_FORMAT, CallablePolicy
+    from oodrl.policies.settings import ImportedConfig
+    from oodrl.registry import import_path
+
+    adapter = ENVIRONMENTS.get(env_id)()
+    import_path(function)  # a missing module or function is one line now, not at collection
+    spec = {
+        "format": CALLABLE_FORMAT,
+        "callable": function,
+        "state_dim": adapter.state_dim,
+        "action_kind": adapter.action_kind,
+        "action_size": adapter.action_size,
+        "certified_machine_independent": False,
+    }
+    data = (json.dumps(spec, indent=2, sort_keys=True) + "\n").encode()
+    policy = CallablePolicy(spec, hashlib.sha256(data).hexdigest())
+    returns = evaluate_policy(policy, episodes, seed, env_id=env_id)
+    config = ImportedConfig(env_id=env_id, source="module:function callable", file=function)
+    report = {
+        "env_id": env_id,
+        "certified_machine_independent": False,
+        "train_config": config.as_dict(),
+        "evaluation": {
+            "mode": "greedy",
+            "episodes": len(returns),
+            "seeds": [seed + i for i in range(len(returns))],
+            "returns": [float(r) for r in returns],
+            "mean": float(returns.mean()),
+            "std": float(returns.std()),
+        },
+    }
+    atomic_write_bytes(policy_path, data)
+    atomic_write_bytes(report_path, (json.dumps(report, indent=2, sort_keys=True) + "\n").encode())
+    return report
+
+
+#: `oodrl new --train`: the SB3 algorithm of each choice and the action kind it needs.
+TRAINERS = {"sac": ("SAC", "continuous"), "ppo": ("PPO", None), "dqn": ("DQN", "discrete")}
+
+
+def train_sb3(choice: str, env_id: str, steps: int, seed: int, out: Path) -> Path:
+    """Train an SB3 MLP policy with the library's default settings; save its .zip at `out`."""
+    import gymnasium as gym
+    import torch
+
+    from oodrl.envs import ENVIRONMENTS
+
+    algorithm, kind = TRAINERS[choice]
+    adapter = ENVIRONMENTS.get(env_id)()
+    if kind is not None and adapter.action_kind != kind:
+        raise PolicyError(
+            f"--train {choice}: {algorithm} needs {kind} actions; {env_id} has "
+            f"{adapter.describe_actions()}. Use --train "
+            f"{'dqn or ppo' if adapter.action_kind == 'discrete' else 'sac or ppo'}."
+        )
+    import stable_baselines3
+
+    torch.set_num_threads(1)
+    settings = {} if choice == "ppo" else {"buffer_size": max(1, min(steps, 1_000_000))}
+    model = getattr(stable_baselines3, algorithm)(
+        "MlpPolicy", gym.make(env_id), seed=seed, device="cpu", verbose=0, **settings
+    )
+    model.learn(total_timesteps=steps)
+    model.save(out)
+    return out

@@ -8,10 +8,14 @@ Accepted files:
   naming the network: ``{"kind": "mlp"}`` (Linear/ReLU, acted on by argmax),
   ``{"kind": "noisy_dqn"}``, or ``{"kind": "tanh_actor", "action_low": [...],
   "action_high": [...]}``;
-- a Stable-Baselines3 ``.zip`` (DQN, PPO, SAC or TD3), loaded by SB3's own loader on CPU and acted
-  on deterministically. stable-baselines3 is an optional dependency (``oodrl[sb3]``); its actions
-  come from torch kernels, so they are not machine-independent: export to an oodrl checkpoint for
-  a reproducible benchmark.
+- a callable's pointer (``oodrl new --policy module:function``, SPEC §18): JSON
+  ``{"format": "oodrl-callable", "callable": "pkg.module:act", "state_dim": ...,
+  "action_kind": ..., "action_size": ...}``; ``act(observations (n, d) float32)`` returns the
+  actions. oodrl cannot certify such code machine-independent (``certified`` is False);
+- a Stable-Baselines3 ``.zip`` (A2C, DQN, PPO, SAC or TD3), loaded by SB3's own loader on CPU
+  and acted on deterministically. stable-baselines3 is an optional dependency (``oodrl[sb3]``);
+  its actions come from torch kernels, so they are not machine-independent: convert it to an
+  oodrl checkpoint (`oodrl.policies.convert`, `oodrl new`) for a reproducible benchmark.
 
 oodrl checkpoints and state_dicts act through :mod:`oodrl.policies.act` (numpy, machine-independent
 arithmetic). Every torch load uses ``weights_only=True``. A missing, corrupt or foreign file raises
@@ -40,6 +44,46 @@ ACCEPTED = (
     f"architecture={{'kind': one of {list(ARCHITECTURE_KINDS)}, ...}}, "
     f"or a Stable-Baselines3 {'/'.join(SB3_ALGORITHMS)} .zip"
 )
+
+
+CALLABLE_FORMAT = "oodrl-callable"
+
+
+class CallablePolicy:
+    """A user's ``module:function`` acting on a batch of observations (not certified
+    machine-independent). The function is looked up on every call, so the policy pickles to
+    collection's worker processes as its import path alone."""
+
+    mode = "greedy"
+    kind = "callable"
+    certified = False
+
+    def __init__(self, spec: Mapping[str, Any], sha256: str) -> None:
+        self.path = str(spec["callable"])
+        self.state_dim = int(spec["state_dim"])
+        self.action_kind = str(spec["action_kind"])
+        self.action_size = int(spec["action_size"])
+        self.sha256 = sha256
+
+    def act(self, obs: np.ndarray, rngs: Sequence[np.random.Generator] | None = None) -> np.ndarray:
+        from oodrl.registry import import_path
+
+        obs = np.asarray(obs, dtype=np.float32).reshape(-1, self.state_dim)
+        actions = np.asarray(import_path(self.path)(obs))
+        if self.action_kind == "discrete":
+            return actions.astype(np.int64).reshape(-1)
+        return actions.astype(np.float32).reshape(-1, self.action_size)
+
+
+def callable_spec(data: bytes) -> dict[str, Any] | None:
+    """The pointer of a callable policy, or None for any other file."""
+    if not data.startswith(b"{"):
+        return None
+    try:
+        spec = json.loads(data)
+    except ValueError:
+        return None
+    return spec if isinstance(spec, dict) and spec.get("format") == CALLABLE_FORMAT else None
 
 
 class Sb3Policy:
@@ -90,6 +134,11 @@ def load_policy(
     if mode not in ("greedy", "noisy"):
         raise PolicyError(f"policy mode must be 'greedy' or 'noisy'; got {mode!r}")
     sha256 = hashlib.sha256(data).hexdigest()
+    spec = callable_spec(data)
+    if spec is not None:
+        policy = CallablePolicy(spec, sha256)
+        _check_dims(path, policy, state_dim, action_size)
+        return policy
     sb3_algorithm = _sb3_algorithm(data)
     if sb3_algorithm == "other":
         raise PolicyError(

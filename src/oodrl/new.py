@@ -1,0 +1,309 @@
+"""`oodrl new NAME --env ENV_ID --policy PATH`: a pipeline for your agent in your environment.
+
+Makes `pipeline/NAME/` (SPEC §18): the agent as an oodrl policy (`models/policy.pt`, converted
+from a Stable-Baselines3 .zip, an RL Zoo folder or an oodrl checkpoint, or a `module:function`
+pointer; `--train` trains one with SB3 instead), its params.yaml (T from the environment's
+episode length; the shared protocol's detectors; the faults the environment supports, with the
+action predicate of `action_conditioned_dynamics` read from the policy's own clean actions),
+`faults.yaml` (each fault left out, and why), and its DVC files, written by the generator every
+pipeline comes from (`oodrl.pipeline`). `cd pipeline/NAME && dvc repro` then runs the protocol.
+
+Everything is made in a staging folder beside it and moved into place once it validates, so a
+refused command leaves nothing behind.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from oodrl.errors import ConfigError, ContractError, OodrlError
+
+NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]*")
+#: Episodes the imported policy is evaluated on for its report (held-out seeds).
+EVALUATION_SEED = 1_000_000
+#: SPEC §4: `action_conditioned_dynamics` should hold on about a third to a half of clean steps;
+#: the threshold is the clean actions' quantile that leaves this share above it.
+PREDICATE_SHARE = 0.4
+#: `gradual_drift` reaches its full factor this far into the post-onset steps (root: 200/334).
+RAMP_SHARE = 0.6
+
+
+@dataclass(frozen=True)
+class NewPipeline:
+    directory: Path
+    env_id: str
+    T: int
+    supported: tuple[str, ...]
+    left_out: dict[str, str]
+    policy_report: dict[str, Any]
+
+
+def new_pipeline(
+    root: Path,
+    name: str,
+    env_id: str,
+    *,
+    policy: str | None = None,
+    train: str | None = None,
+    steps: int = 50_000,
+    T: int | None = None,  # noqa: N803 - the protocol's name
+    episodes: int = 10,
+    seed: int = 0,
+) -> NewPipeline:
+    """Make `root/pipeline/NAME/` (see the module docstring); a one-line error otherwise."""
+    from oodrl.config import read_params_data
+    from oodrl.pipeline import ENVIRONMENTS_DIR, PARAMS_FILE
+
+    directory = root / ENVIRONMENTS_DIR / name
+    _check_name(name, directory)
+    if (policy is None) == (train is None):
+        raise ConfigError("oodrl new: give exactly one of --policy PATH and --train sac|ppo|dqn.")
+    adapter = _adapter(env_id)
+    T = T or episode_length(env_id)  # noqa: N806
+    shared = read_params_data(root / PARAMS_FILE)
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    staging = directory.with_name(f".{name}.new-{os.getpid()}")
+    staging.mkdir()
+    try:
+        models = staging / "models"
+        models.mkdir()
+        report = _make_policy(
+            policy, train, env_id, models, steps=steps, episodes=episodes, seed=seed
+        )
+        from oodrl.envs.generic import fault_support
+        from oodrl.policies.load import load_policy
+
+        support = fault_support(adapter, list(shared["benchmark"]["injectors"]))
+        blocks, predicate_reason = _injector_blocks(adapter, load_policy(models / "policy.pt"), T)
+        if predicate_reason and support.get("action_conditioned_dynamics", "") is None:
+            support["action_conditioned_dynamics"] = predicate_reason
+        (staging / PARAMS_FILE).write_text(
+            params_text(name, env_id, T, report["train_config"], support, blocks)
+        )
+        (staging / "faults.yaml").write_text(faults_text(env_id, support))
+        _check(staging)
+        staging.rename(directory)
+        staging = directory  # from here on, a failure removes the pipeline itself
+        _write_dvc_files(directory, root)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    supported = tuple(n for n, reason in support.items() if reason is None)
+    left_out = {n: reason for n, reason in support.items() if reason is not None}
+    return NewPipeline(directory, env_id, T, supported, left_out, report)
+
+
+def _check_name(name: str, directory: Path) -> None:
+    from oodrl.pipeline import SUITE_DIR
+
+    if not NAME_PATTERN.fullmatch(name):
+        raise ConfigError(
+            f"NAME: {name!r} is not a pipeline name; use lower-case letters, digits and _, "
+            "starting with a letter (e.g. my_agent)."
+        )
+    if directory.exists() or directory.name == SUITE_DIR.name:
+        raise ConfigError(
+            f"NAME: {directory} exists already; choose another name (or remove it first)."
+        )
+
+
+def _adapter(env_id: str):
+    """The environment's adapter, refused in one line for an unknown id or observation."""
+    from oodrl.envs import ENVIRONMENTS
+
+    try:
+        adapter = ENVIRONMENTS.get(env_id)()
+        adapter.state_dim  # noqa: B018 - makes the environment: its observation space is checked
+        adapter.action_kind  # noqa: B018
+    except OodrlError as error:
+        raise ConfigError(f"--env: {error}") from None
+    return adapter
+
+
+def episode_length(env_id: str) -> int:
+    """The environment's registered episode length (max_episode_steps): the protocol's T."""
+    import gymnasium
+
+    steps = gymnasium.spec(env_id).max_episode_steps
+    if not steps:
+        raise ConfigError(
+            f"--env: {env_id} registers no episode length (max_episode_steps); give --T."
+        )
+    return int(steps)
+
+
+def _make_policy(
+    policy: str | None,
+    train: str | None,
+    env_id: str,
+    models: Path,
+    *,
+    steps: int,
+    episodes: int,
+    seed: int,
+) -> dict[str, Any]:
+    """Write models/policy.pt and models/policy.json; return the report."""
+    from oodrl.policies import convert
+
+    out, report = models / "policy.pt", models / "policy.json"
+    kwargs = {"episodes": episodes, "seed": EVALUATION_SEED}
+    if train is not None:
+        if train not in convert.TRAINERS:
+            raise ConfigError(f"--train: {train!r}; allowed: {', '.join(convert.TRAINERS)}.")
+        # The SB3 model stays beside the policy: what it was converted from.
+        zip_path = convert.train_sb3(train, env_id, steps, seed, models / f"sb3_{train}.zip")
+        how = f"oodrl new --train {train} --steps {steps} --seed {seed}"
+        source = convert.Sb3Source(zip_path, None, "Stable-Baselines3 .zip")
+        return convert.convert_sb3(source, env_id, out, report, how=how, **kwargs)
+    path = Path(policy)
+    if not path.exists() and ":" in policy:
+        return convert.save_callable(policy, env_id, out, report, **kwargs)
+    if path.is_file() and not zipfile_like(path):
+        return convert.convert_checkpoint(path, env_id, out, report, **kwargs)
+    source = convert.find_source(path)
+    if source.env_id is not None and source.env_id != env_id:
+        raise ConfigError(
+            f"--policy: {path} is an RL Zoo run on {source.env_id}; --env says {env_id}."
+        )
+    return convert.convert_sb3(source, env_id, out, report, **kwargs)
+
+
+def zipfile_like(path: Path) -> bool:
+    """Whether a file is a zip archive (an SB3 model; torch checkpoints are zips too, told
+    apart by SB3's `data` entry)."""
+    import zipfile
+
+    if not zipfile.is_zipfile(path):
+        return False
+    with zipfile.ZipFile(path) as archive:
+        return "data" in archive.namelist()
+
+
+def _injector_blocks(adapter, policy, T: int) -> tuple[dict[str, dict], str | None]:  # noqa: N803
+    """The injector parameters this environment and policy need, and why the action predicate
+    is left out (None when it is in)."""
+    from oodrl.core.spec import default_onset
+    from oodrl.envs.collect import collect
+
+    actions = collect(adapter, policy, [EVALUATION_SEED], T).actions[0]
+    ramp = max(1, round(RAMP_SHARE * (T - default_onset(T))))
+    predicate, reason = action_predicate(adapter, actions)
+    return {"action_conditioned_dynamics": predicate, "gradual_drift": {"ramp_steps": ramp}}, reason
+
+
+def action_predicate(adapter, actions: np.ndarray) -> tuple[dict[str, Any], str | None]:
+    """`action_conditioned_dynamics`'s predicate from clean actions: the discrete action, or
+    the coordinate and threshold, holding closest to PREDICATE_SHARE of steps; with the reason
+    it is left out when none holds on some steps and not on others."""
+    if adapter.action_kind == "discrete":
+        shares = np.bincount(actions, minlength=adapter.action_size) / len(actions)
+        best = int(np.argmin(np.abs(shares - PREDICATE_SHARE)))
+        block = {"target_action": best, "target_dim": None, "target_threshold": None}
+        if 0 < shares[best] < 1:
+            return block, None
+        return block, "the policy commands one action on every clean step: no action predicate."
+    for dim in range(adapter.action_size):
+        column = actions[:, dim].astype(np.float64)
+        threshold = float(np.format_float_positional(np.quantile(column, 1 - PREDICATE_SHARE), 4))
+        low, high = float(adapter.action_low[dim]), float(adapter.action_high[dim])
+        if low <= threshold < high and 0 < np.mean(column > threshold) < 1:
+            return {"target_action": None, "target_dim": dim, "target_threshold": threshold}, None
+    middle = float(np.clip(0.0, adapter.action_low[0], np.nextafter(adapter.action_high[0], -1)))
+    block = {"target_action": None, "target_dim": 0, "target_threshold": middle}
+    return block, "the policy's clean actions never cross a threshold: no action predicate."
+
+
+def _flow(value: Any) -> str:
+    """A value as one line of YAML (JSON is YAML's flow style)."""
+    return json.dumps(value)
+
+
+def params_text(
+    name: str,
+    env_id: str,
+    T: int,  # noqa: N803
+    train_config: dict[str, Any],
+    support: dict[str, str | None],
+    blocks: dict[str, dict],
+) -> str:
+    """params.yaml of the new pipeline: only what differs from the shared protocol."""
+    from oodrl.core.spec import default_onset
+
+    supported = [n for n, reason in support.items() if reason is None]
+    lines = [
+        f"# {name}: {env_id}, made by `oodrl new` (SPEC §18): what differs from the shared",
+        "# ../../params.yaml. faults.yaml lists the faults left out and why.",
+        "extends: ../../params.yaml",
+        "",
+        "env:",
+        f"  id: {env_id}",
+        f"  T: {T}".ljust(30) + "# steps per stream: the episode length (max_episode_steps)",
+        "  onset: null".ljust(30) + f"# floor(T/3) = {default_onset(T)}",
+        "",
+        "policy:",
+        "  train:                      # imported by `oodrl new`: kept, never trained here",
+        "    algorithm: imported",
+        *(f"    {key}: {_flow(value)}" for key, value in sorted(train_config.items())),
+        "",
+    ]
+    if len(supported) < len(support):
+        lines += ["benchmark:", f"  injectors: {_flow(supported)}", ""]
+    lines += [
+        "anomaly:",
+        "  injectors:",
+        *(f"    {key}: {_flow(block)}" for key, block in sorted(blocks.items())),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def faults_text(env_id: str, support: dict[str, str | None]) -> str:
+    from oodrl import yamlio
+
+    header = f"# The shared protocol's faults on {env_id} (oodrl new, SPEC §18).\n"
+    return header + yamlio.dump(
+        {
+            "supported": [n for n, reason in support.items() if reason is None],
+            "left_out": {n: reason for n, reason in support.items() if reason is not None},
+        }
+    )
+
+
+def _check(directory: Path) -> None:
+    """The new params validate, components and environment included (as check_params does)."""
+    from oodrl.config import load_params
+
+    try:
+        load_params(directory / "params.yaml").check_environment()
+    except ContractError as error:
+        raise ConfigError(str(error)) from None
+
+
+def _write_dvc_files(directory: Path, root: Path) -> None:
+    from oodrl.pipeline import pipeline_files, subrepo_files
+
+    files = {**pipeline_files(directory, root), **subrepo_files(directory, root)}
+    for path, text in files.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+
+
+def summary(made: NewPipeline, root: Path) -> str:
+    """What `oodrl new` tells its user: where, what the policy scored, which faults run."""
+    evaluation = made.policy_report["evaluation"]
+    where = made.directory.relative_to(root)
+    lines = [
+        f"{where}: {made.env_id}, T={made.T}; policy mean return {evaluation['mean']:.1f} over "
+        f"{evaluation['episodes']} held-out episodes",
+        f"faults: {', '.join(made.supported)}",
+        *(f"left out: {name}: {reason}" for name, reason in made.left_out.items()),
+        f"next: (cd {where} && dvc repro), then oodrl show {where}/reports/results.yaml",
+    ]
+    return "\n".join(lines)
