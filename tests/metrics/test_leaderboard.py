@@ -218,3 +218,17 @@ def test_one_protocol_version_refuses_a_mix_in_one_line():
     assert "version 1: a.yaml, c.yaml; version 2: b.yaml" in message
     with pytest.raises(StoreError, match="x.yaml: protocol_version must be an integer"):
         one_protocol_version({"x.yaml": {"protocol_version": "2"}})
+
+
+@pytest.mark.parametrize("runs", [2, 3, 5])
+def test_replicate_wins_from_draw_counts_equal_comparing_the_drawn_scores(runs):
+    from oodrl.metrics.leaderboard import _mann_whitney, _replicate_wins, _replicates
+
+    rng = np.random.default_rng(runs)
+    # Scores on a coarse grid, so that ties between detectors' runs are common.
+    task = [{d: rng.integers(0, 5, size=4) / 4 for d in "abcd"} for _ in range(runs)]
+    replicates, counts = _replicates(task, tuple("abcd"), 300, np.random.default_rng(1))
+    scores = np.array([[run[d].mean() for run in task] for d in "abcd"])
+    direct = _mann_whitney(replicates[:, None], replicates[None, :])
+    assert np.array_equal(_replicate_wins(scores, replicates, counts), direct)
+    assert counts.sum(axis=-1).tolist() == [[runs] * 300] * 4

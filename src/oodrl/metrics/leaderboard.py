@@ -170,10 +170,11 @@ def interquartile_mean(values: np.ndarray, axis: int | None = -1) -> np.ndarray:
 
 def _mann_whitney(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """U / (n_a · n_b) over the last axes (a: (..., n_a), b: (..., n_b)): the share of pairs
-    with a > b, ties ½ (U in whole and half counts, one division, as scipy's statistic)."""
-    greater = (a[..., :, None] > b[..., None, :]).sum(axis=(-2, -1))
-    equal = (a[..., :, None] == b[..., None, :]).sum(axis=(-2, -1))
-    return (greater + 0.5 * equal) / (a.shape[-1] * b.shape[-1])
+    with a > b, ties ½. U = (pairs + Σ sign(a − b)) / 2 is a whole or half count, so the one
+    division that remains gives scipy's statistic to the bit."""
+    a, b = np.broadcast_arrays(a[..., :, None], b[..., None, :])
+    signs = np.subtract(a > b, a < b, dtype=np.int8).reshape(*a.shape[:-2], -1)
+    return (signs.shape[-1] + signs.sum(axis=-1, dtype=np.int64)) / 2 / signs.shape[-1]
 
 
 def _task_runs(
@@ -199,8 +200,9 @@ def _task_runs(
 
 def _replicates(
     runs: list[dict[str, np.ndarray]], detectors: tuple[str, ...], n_boot: int, rng
-) -> np.ndarray:
-    """(detectors, n_boot, runs) replicate run scores of one task (see the module doc)."""
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """(detectors, n_boot, runs) replicate run scores of one task (see the module doc) and,
+    where runs are resampled, how often each run was drawn (detectors, n_boot, runs)."""
     if len(runs) == 1:
         sizes = {runs[0][d].size for d in detectors}
         if len(sizes) != 1:
@@ -210,10 +212,35 @@ def _replicates(
         episodes = np.stack([runs[0][d] for d in detectors])  # (detectors, episodes)
         n = episodes.shape[1]
         index = rng.integers(0, n, size=(n_boot, n))
-        return episodes[:, index].mean(axis=2)[:, :, None]
+        return episodes[:, index].mean(axis=2)[:, :, None], None
     scores = np.array([[run[d].mean() for run in runs] for d in detectors])  # (detectors, runs)
     index = rng.integers(0, len(runs), size=(len(detectors), n_boot, len(runs)))
-    return scores[np.arange(len(detectors))[:, None, None], index]
+    counts = (index[..., None] == np.arange(len(runs))).sum(axis=2)
+    return scores[np.arange(len(detectors))[:, None, None], index], counts
+
+
+def _signs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """sign(a − b) as int8, by comparison (exact for any finite floats)."""
+    return np.subtract(a > b, a < b, dtype=np.int8)
+
+
+def _replicate_wins(scores: np.ndarray, replicates: np.ndarray, counts: np.ndarray | None):
+    """(D, D, n_boot): every detector pair's U / (n · n) on one task in every replicate.
+
+    With resampled runs, U counts the pairs of drawn runs: Σ_ij c_a[i] c_b[j] sign(s_a[i] −
+    s_b[j]) over the original run scores s and draw counts c, which is `_mann_whitney` of the
+    replicate scores without comparing n × n drawn values anew in every replicate.
+    """
+    if counts is None:  # one run: the replicate scores compared directly
+        one = replicates[..., 0]
+        return (1 + _signs(one[:, None], one[None, :])) / 2
+    pairs = scores.shape[1] ** 2
+    signs = _signs(scores[:, None, :, None], scores[None, :, None, :]).astype(np.float64)
+    weights = counts.transpose(0, 2, 1).astype(np.float64)  # (D, R, n_boot)
+    # Whole numbers throughout, so the float products and sums are exact.
+    by_b = signs @ weights[None]  # (D, D, R, n_boot): Σ_j sign[a, b, i, j] c_b[j]
+    total = (weights[:, None] * by_b).sum(axis=2)  # Σ_i c_a[i] (…)
+    return (pairs + total) / 2 / pairs
 
 
 def aggregate(
@@ -235,10 +262,11 @@ def aggregate(
     tasks = tuple(by_task)
     runs = tuple(len(by_task[t]) for t in tasks)
     scores = [np.array([[r[d].mean() for r in by_task[t]] for d in detectors]) for t in tasks]
-    replicates = [
+    drawn = [
         _replicates(by_task[t], detectors, n_boot, np.random.default_rng([seed, c]))
         for c, t in enumerate(tasks)
     ]
+    replicates = [r for r, _ in drawn]
     # The pool of (run, task) scores, run-major: with equal runs, rliable's (runs × tasks) in C
     # order, so the IQM is computed on the same sequence of numbers.
     pool = [(r, c) for r in range(max(runs)) for c in range(len(tasks)) if r < runs[c]]
@@ -247,9 +275,13 @@ def aggregate(
     task_means = np.stack([s.mean(axis=1) for s in scores], axis=-1)  # (D, T)
     replicate_task_means = np.stack([r.mean(axis=2) for r in replicates], axis=-1)  # (D, B, T)
 
-    def interval(estimate: float, draws: np.ndarray) -> Interval:
-        low, high = np.quantile(draws, [(1 - ci) / 2, (1 + ci) / 2])
-        return Interval(float(estimate), float(low), float(high))
+    def intervals(points: np.ndarray, draws: np.ndarray) -> np.ndarray:
+        """(..., 3): each point with the percentile CI of its draws (..., n_boot)."""
+        low, high = np.quantile(draws, [(1 - ci) / 2, (1 + ci) / 2], axis=-1)
+        return np.stack([points, low, high], axis=-1)
+
+    def by_detector(values: np.ndarray) -> dict[str, Interval]:
+        return {d: Interval(*map(float, values[i])) for i, d in enumerate(detectors)}
 
     def gap(pooled: np.ndarray) -> np.ndarray:
         return 1.0 - np.minimum(pooled, 1.0).mean(axis=-1)
@@ -262,39 +294,32 @@ def aggregate(
         }
         for i, d in enumerate(detectors)
     }
-    mean = {
-        d: interval(task_means[i].mean(), replicate_task_means[i].mean(axis=1))
-        for i, d in enumerate(detectors)
-    }
-    iqm = {
-        d: interval(interquartile_mean(point_pool[i]), interquartile_mean(replicate_pool[i], 1))
-        for i, d in enumerate(detectors)
-    }
-    optimality_gap = {
-        d: interval(gap(point_pool[i]), gap(replicate_pool[i])) for i, d in enumerate(detectors)
-    }
-    point_wins = np.stack(
-        [_mann_whitney(s[:, None, :], s[None, :, :]) for s in scores], axis=-1
-    )  # (D, D, T)
+    mean = intervals(task_means.mean(axis=-1), replicate_task_means.mean(axis=-1))
+    iqm = intervals(interquartile_mean(point_pool), interquartile_mean(replicate_pool))
+    optimality_gap = intervals(gap(point_pool), gap(replicate_pool))
+    point_wins = np.stack([_mann_whitney(s[:, None], s[None, :]) for s in scores], axis=-1)
     replicate_wins = sum(
-        _mann_whitney(r[:, None, :, :], r[None, :, :, :]) for r in replicates
-    ) / len(tasks)  # (D, D, B)
+        _replicate_wins(s, r, counts) for s, (r, counts) in zip(scores, drawn, strict=True)
+    ) / len(tasks)  # (D, D, n_boot)
+    wins = intervals(point_wins.mean(axis=-1), replicate_wins)
     improvement = {
-        (a, b): interval(point_wins[i, j].mean(), replicate_wins[i, j])
+        (a, b): Interval(*map(float, wins[i, j]))
         for i, a in enumerate(detectors)
         for j, b in enumerate(detectors)
         if i != j
     }
+    size = point_pool.shape[-1]
+    shares = intervals(
+        np.stack([np.count_nonzero(point_pool >= t, axis=-1) / size for t in taus], axis=-1),
+        np.stack([np.count_nonzero(replicate_pool >= t, axis=-1) / size for t in taus], axis=1),
+    )  # (D, taus, 3)
     profile = {
-        d: tuple(
-            interval((point_pool[i] >= tau).mean(), (replicate_pool[i] >= tau).mean(axis=-1))
-            for tau in taus
-        )
-        for i, d in enumerate(detectors)
+        d: tuple(Interval(*map(float, v)) for v in shares[i]) for i, d in enumerate(detectors)
     }
     return Aggregate(
-        detectors, tasks, runs, _bootstrap_name(runs), table, mean, iqm, optimality_gap,
-        improvement, tuple(float(t) for t in taus), profile,
+        detectors, tasks, runs, _bootstrap_name(runs), table, by_detector(mean),
+        by_detector(iqm), by_detector(optimality_gap), improvement,
+        tuple(float(t) for t in taus), profile,
     )  # fmt: skip
 
 
