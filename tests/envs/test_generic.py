@@ -65,6 +65,12 @@ def test_mujoco_environments_get_every_fault_through_qpos_qvel(env_id):
     assert fault_support(adapter, INJECTORS.names()) == dict.fromkeys(INJECTORS.names())
 
 
+def test_the_suite_keeps_every_fault():
+    for env_id in ("LunarLander-v3", "CartPole-v1"):
+        adapter = ENVIRONMENTS.get(env_id)()
+        assert fault_support(adapter, INJECTORS.names()) == dict.fromkeys(INJECTORS.names())
+
+
 def test_other_environments_leave_dynamics_faults_out_with_the_reason():
     adapter = ENVIRONMENTS.get("MountainCarContinuous-v0")()
     support = fault_support(adapter, INJECTORS.names())

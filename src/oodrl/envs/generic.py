@@ -163,11 +163,13 @@ def fault_support(adapter: EnvironmentAdapter, injectors: list[str]) -> dict[str
     """Each injector → None where the environment supports it, else the reason it is left out.
 
     Dynamics faults (`ScalingInjector`s) need the state vector; every other fault needs only
-    observations and actions, which every environment has.
+    observations and actions, which every environment has. The suite's own adapters have a
+    tested state vector (tests/envs/test_adapters.py); a generic one is probed here.
     """
     from oodrl.injectors import INJECTORS
     from oodrl.injectors.online import ScalingInjector
 
     dynamics = [n for n in injectors if issubclass(INJECTORS.get(n), ScalingInjector)]
-    reason = probe_state(adapter) if dynamics else None
+    probed = dynamics and isinstance(adapter, GenericAdapter)
+    reason = probe_state(adapter) if probed else None
     return {name: reason if name in dynamics else None for name in injectors}
