@@ -31,16 +31,15 @@ which one a table used. Task number c (in sorted order) draws from `default_rng(
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
-if TYPE_CHECKING:
-    from oodrl.config import Params
+# The protocol stamp lives in its own module, so the stages that write results do not depend on
+# the leaderboard's code; oodrl.tiers still imports it from here.
+from oodrl.metrics.stamp import protocol_stamp  # noqa: F401
 
 
 class Cell(NamedTuple):
@@ -470,55 +469,3 @@ def build_board(
             if kept and len(kept) < len(cells):
                 unflagged[key] = aggregate(kept, **options)
     return Board(metrics, tiers, overall, families, stability, flagged, unflagged)
-
-
-#: The protocol a results file follows: 2 = SPEC §15/§16 (impact tiers, operating points,
-#: policy seeds, trivial-signal baselines). Bump it whenever results stop being comparable
-#: with the previous version's.
-PROTOCOL_VERSION = 2
-#: What a results file without a stamp is read as: the protocol before stamps, SPEC §3-§12.
-UNSTAMPED_VERSION = 1
-
-
-def params_hash(params: Params) -> str:
-    """sha256 of the resolved params (defaults filled in, `extends` merged) as canonical JSON.
-
-    The executor block is left out: results are identical for any worker count.
-    """
-    resolved = params.model_dump(mode="json", exclude={"executor"})
-    text = json.dumps(resolved, sort_keys=True, separators=(",", ":"), ensure_ascii=True)
-    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
-
-
-def protocol_stamp(params: Params) -> dict[str, Any]:
-    """The keys every results file carries: its protocol version and its params' hash."""
-    return {"protocol_version": PROTOCOL_VERSION, "params_hash": params_hash(params)}
-
-
-def protocol_version(document: Mapping[str, Any]) -> int:
-    """The protocol version of a results document; unstamped files are `UNSTAMPED_VERSION`."""
-    version = document.get("protocol_version", UNSTAMPED_VERSION)
-    if isinstance(version, bool) or not isinstance(version, int):
-        raise ValueError(f"protocol_version must be an integer; got {version!r}")
-    return version
-
-
-def one_protocol_version(documents: Mapping[str, Mapping[str, Any]]) -> int:
-    """The one protocol version of every document (name → document), or a one-line error."""
-    from oodrl.errors import StoreError
-
-    versions: dict[int, list[str]] = {}
-    for name, document in documents.items():
-        try:
-            versions.setdefault(protocol_version(document), []).append(str(name))
-        except ValueError as error:
-            raise StoreError(f"{name}: {error}.") from None
-    if len(versions) > 1:
-        parts = "; ".join(
-            f"version {v}: {', '.join(sorted(names))}" for v, names in sorted(versions.items())
-        )
-        raise StoreError(
-            f"Results of different protocol versions cannot be ranked together ({parts}); "
-            f"re-run the metrics stage of the older pipelines."
-        )
-    return next(iter(versions), PROTOCOL_VERSION)

@@ -27,15 +27,14 @@ from oodrl.metrics.leaderboard import (
     MATCHED_AUROC,
     TRIVIAL_DETECTORS,
     TRIVIAL_THRESHOLD,
-    UNSTAMPED_VERSION,
     Aggregate,
     Board,
     Cell,
     Interval,
     build_board,
-    one_protocol_version,
     policy_key,
 )
+from oodrl.metrics.stamp import UNSTAMPED_VERSION, one_protocol_version
 from oodrl.report.tables import UNCERTIFIED, certification_note, marked, record_injector
 
 #: Where a record keeps the false-alarm budget α of its operating point.
