@@ -27,8 +27,10 @@ import numpy as np
 from oodrl.errors import ConfigError, ContractError, OodrlError
 
 NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]*")
-#: Episodes the imported policy is evaluated on for its report (held-out seeds).
+#: The first seed of the held-out episodes of the policy's report, and the seed of the clean
+#: stream its action predicate is read from (the ID and evaluation sets use seeds from 0).
 EVALUATION_SEED = 1_000_000
+PREDICATE_FAULT = "action_conditioned_dynamics"
 #: SPEC §4: `action_conditioned_dynamics` should hold on about a third to a half of clean steps;
 #: the threshold is the clean actions' quantile that leaves this share above it.
 PREDICATE_SHARE = 0.4
@@ -83,8 +85,8 @@ def new_pipeline(
 
         support = fault_support(adapter, list(shared["benchmark"]["injectors"]))
         blocks, predicate_reason = _injector_blocks(adapter, load_policy(models / "policy.pt"), T)
-        if predicate_reason and support.get("action_conditioned_dynamics", "") is None:
-            support["action_conditioned_dynamics"] = predicate_reason
+        if predicate_reason and PREDICATE_FAULT in support and support[PREDICATE_FAULT] is None:
+            support[PREDICATE_FAULT] = predicate_reason
         (staging / PARAMS_FILE).write_text(
             params_text(name, env_id, T, report["train_config"], support, blocks)
         )
@@ -196,7 +198,7 @@ def _injector_blocks(adapter, policy, T: int) -> tuple[dict[str, dict], str | No
     actions = collect(adapter, policy, [EVALUATION_SEED], T).actions[0]
     ramp = max(1, round(RAMP_SHARE * (T - default_onset(T))))
     predicate, reason = action_predicate(adapter, actions)
-    return {"action_conditioned_dynamics": predicate, "gradual_drift": {"ramp_steps": ramp}}, reason
+    return {PREDICATE_FAULT: predicate, "gradual_drift": {"ramp_steps": ramp}}, reason
 
 
 def action_predicate(adapter, actions: np.ndarray) -> tuple[dict[str, Any], str | None]:
