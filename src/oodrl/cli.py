@@ -19,7 +19,8 @@ from oodrl.errors import ConfigError, OodrlError
 # Stages parallelise explicitly (executor.workers processes); library thread pools would
 # oversubscribe the cores (OpenMP threads spin-wait: 10x slowdowns seen on 2 cores) and let
 # float results depend on the machine's core count. Set before numpy or torch is imported.
-for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+THREAD_POOL_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+for _variable in THREAD_POOL_VARIABLES:
     os.environ.setdefault(_variable, "1")
 
 app = typer.Typer(
@@ -63,6 +64,10 @@ pipeline_app = typer.Typer(
     help="The DVC pipelines (root and pipeline/<env>/), generated from one template.",
 )
 app.add_typer(pipeline_app, name="pipeline")
+suite_app = typer.Typer(
+    no_args_is_help=True, help="The whole suite: every pipeline, then the leaderboard."
+)
+app.add_typer(suite_app, name="suite")
 
 
 def command(name: str | None = None, group: typer.Typer = app):
@@ -554,6 +559,21 @@ def pipeline_check(root: RootOption = Path(".")) -> None:
 
     check(root)
     typer.echo(f"{len(pipeline_dirs(root))} pipelines: every dvc.yaml is current")
+
+
+@command("run", group=suite_app)
+def suite_run(
+    workers: Annotated[int, typer.Option(help="local worker processes, one pipeline each")] = 2,
+    ray: Annotated[
+        str | None, typer.Option("--ray", help="a Ray cluster's HOST:PORT: one task per pipeline")
+    ] = None,
+    root: RootOption = Path("."),
+) -> None:
+    """Build every pipeline of the suite in parallel, each in its own clone of HEAD, then the
+    leaderboard; the checkout ends with the dvc.lock files a serial build writes."""
+    from oodrl.suite_run import run_suite
+
+    run_suite(root, workers=workers, ray_address=ray, echo=typer.echo)
 
 
 @command("readme-table")

@@ -1,0 +1,356 @@
+"""`oodrl suite run` (SPEC §16): every pipeline of the suite in parallel, then the leaderboard.
+
+Each pipeline is a DVC project of its own (the root, `pipeline/<env>/`), all keeping outputs and
+run-cache in the root's cache. DVC refuses two `dvc repro` in one workspace, so each pipeline is
+built by a task in its own clone of the head's commit; what the tasks computed reaches the head
+through DVC's run-cache, and the head's `dvc repro` of each project then restores every stage
+from it (outputs are byte-identical on any machine, SPEC §14) and runs only the leaderboard:
+the checkout ends with the dvc.lock files a serial run writes.
+
+Two ways to share, chosen by what is configured:
+- a DVC remote (the root project's default remote, at any config level): each task runs
+  `dvc repro --pull` and `dvc push --run-cache`; the head pulls. The remote reaches every project
+  and every node through a DVC *system*-level config file in a temporary directory
+  (DVC_SYSTEM_CONFIG_DIR), so no file of the checkout or of its projects is edited. On Ray this
+  is the only way (the nodes share nothing else).
+- none, with local workers: the clones use the head's cache directory itself (each clone's
+  git-ignored .dvc/config.local), so one machine needs no remote and nothing is copied twice.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from oodrl.errors import ConfigError, OodrlError
+
+#: A task whose node dies runs again on another node up to this many times.
+RAY_MAX_RETRIES = 3
+
+
+class SuiteRunError(OodrlError):
+    """A pipeline's task, the DVC remote or the Ray cluster failed; the checkout is untouched."""
+
+
+@dataclass(frozen=True)
+class PipelineRun:
+    """One pipeline built by one task: how long, where, and which stages ran (not restored)."""
+
+    pipeline: str
+    seconds: float
+    node: str
+    ran: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class SuiteRun:
+    pipelines: tuple[PipelineRun, ...]
+    head_ran: tuple[str, ...]
+    seconds: float
+
+
+@dataclass(frozen=True)
+class Remote:
+    """The DVC remote every project and node uses: its name and options (paths resolved)."""
+
+    name: str
+    options: dict[str, str]
+
+
+def suite_pipelines(root: Path) -> list[str]:
+    """Every pipeline of the suite, relative to the root ('.' is the root's own)."""
+    from oodrl.pipeline import pipeline_dirs
+
+    return [d.relative_to(root).as_posix() or "." for d in pipeline_dirs(root)]
+
+
+# -- one task: one pipeline in its own clone ----------------------------------------------------
+def build_pipeline(
+    bundle: bytes, commit: str, pipeline: str, remote: Remote | None, shared_cache: str | None
+) -> tuple[float, tuple[str, ...]]:
+    """Clone `commit` from a git bundle, `dvc repro` the pipeline's project there (pulling what
+    the remote has), push its outputs and run-cache; the seconds taken and the stages that ran.
+
+    The clone is a temporary directory that goes with the task. A task killed with its node
+    leaves nothing in the head's checkout; the remote and the cache receive whole objects only
+    (written aside, then renamed) and a run-cache entry only once its stage has finished."""
+    start = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="oodrl-suite-") as scratch, _dvc_config(remote) as env:
+        clone = Path(scratch) / "repo"
+        (Path(scratch) / "head.bundle").write_bytes(bundle)
+        _run(Path(scratch), env, "git", "clone", "-q", "--no-checkout", "head.bundle", "repo")
+        _run(clone, env, "git", "-c", "advice.detachedHead=false", "checkout", "-q", commit)
+        project = clone / pipeline
+        if shared_cache:
+            _run(project, env, "dvc", "cache", "dir", "--local", shared_cache)
+        done = _run(project, env, "dvc", "repro", *(["--pull"] if remote else []))
+        if remote:
+            _run(project, env, "dvc", "push", "-q", "--run-cache")
+    return time.perf_counter() - start, ran_stages(done.stdout)
+
+
+def ran_stages(dvc_output: str) -> tuple[str, ...]:
+    """The stages whose command ran, from `dvc repro`'s output (restored ones say 'cached')."""
+    return tuple(sorted(re.findall(r"^Running stage '([^']+)'", dvc_output, re.MULTILINE)))
+
+
+def task_environment(repo: Path) -> dict[str, str]:
+    """What stage commands run with: the repository's own code first (the commit being built,
+    whatever oodrl the node has installed), one thread per library pool (why: `oodrl.cli`),
+    and the running interpreter's `oodrl` and `dvc` first on PATH."""
+    from oodrl.cli import THREAD_POOL_VARIABLES
+
+    env = {**os.environ, **dict.fromkeys(THREAD_POOL_VARIABLES, "1"), "DVC_NO_ANALYTICS": "1"}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(repo / "src"), env.get("PYTHONPATH")]))
+    env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
+    return env
+
+
+@contextmanager
+def _dvc_config(remote: Remote | None) -> Iterator[dict[str, str]]:
+    """Environment additions making `remote` every DVC project's default remote: a system-level
+    DVC config in a temporary directory (the machine's own system config copied in first)."""
+    if remote is None:
+        yield {}
+        return
+    from configobj import ConfigObj
+    from dvc.dirs import system_config_dir
+
+    with tempfile.TemporaryDirectory(prefix="oodrl-dvc-config-") as directory:
+        config = ConfigObj(os.path.join(system_config_dir(), "config"))
+        config.filename = os.path.join(directory, "config")
+        config.setdefault("core", {})["remote"] = remote.name
+        config[f'remote "{remote.name}"'] = remote.options
+        config.write()
+        yield {"DVC_SYSTEM_CONFIG_DIR": directory}
+
+
+def _run(cwd: Path, env: dict[str, str], *args: str) -> subprocess.CompletedProcess:
+    """One git or DVC command; a failure is a SuiteRunError carrying DVC's own error line."""
+    command = [sys.executable, "-m", "dvc", *args[1:]] if args[0] == "dvc" else list(args)
+    repo = Path(_git_root(cwd))
+    environment = {**task_environment(repo), **env}
+    done = subprocess.run(command, cwd=cwd, env=environment, capture_output=True, text=True)
+    if done.returncode != 0:
+        lines = [line.strip() for line in (done.stderr + done.stdout).splitlines() if line.strip()]
+        why = next((line for line in lines if line.startswith(("ERROR", "error"))), None)
+        raise SuiteRunError(f"`{' '.join(args[:2])}` in {cwd.name}: {why or (lines or [''])[-1]}")
+    return done
+
+
+def _git_root(path: Path) -> str:
+    for candidate in [path, *path.parents]:
+        if (candidate / ".git").exists():
+            return str(candidate)
+    return str(path)
+
+
+# -- the head ------------------------------------------------------------------------------------
+def run_suite(
+    root: Path,
+    workers: int = 2,
+    ray_address: str | None = None,
+    echo: Callable[[str], None] = print,
+) -> SuiteRun:
+    """Build every pipeline of the suite (local workers, or Ray tasks), then the leaderboard."""
+    root = root.resolve()
+    start = time.perf_counter()
+    if workers < 1:
+        raise ConfigError(f"--workers must be >= 1. Got {workers} instead.")
+    if ray_address is not None:
+        _check_reachable(ray_address)
+    from oodrl.pipeline import SUITE_DIR
+
+    pipelines = suite_pipelines(root)
+    projects = [*pipelines, SUITE_DIR.as_posix()]
+    if all(_up_to_date(root / project) for project in projects):
+        echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
+        return SuiteRun((), (), time.perf_counter() - start)
+    _refuse_uncommitted_inputs(root, projects)
+    remote = default_remote(root)
+    if remote is not None:
+        _check_writable(root, remote)
+    if ray_address is not None and remote is None:
+        raise ConfigError("--ray: the nodes share stages through a DVC remote and none is "
+                          "configured; add one every node can reach (README: a shared DVC "
+                          "remote), e.g. `dvc remote add -d lab s3://bucket/oodrl`.")  # fmt: skip
+    job = {
+        "bundle": _bundle(root),
+        "commit": _run(root, {}, "git", "rev-parse", "HEAD").stdout.strip(),
+        "remote": remote,
+        "shared_cache": None if ray_address else _cache_dir(root),
+    }
+    if ray_address is None:
+        runs = list(_local_tasks(pipelines, job, workers, echo))
+    else:
+        runs = list(_ray_tasks(pipelines, job, ray_address, echo))
+    head_ran: list[str] = []
+    with _dvc_config(remote) as env:
+        # Every stage restored from the run-cache but those DVC cannot cache (persistent
+        # outputs: check_params, train_policy) and the leaderboard, which runs here.
+        for project in projects:
+            done = _run(root / project, env, "dvc", "repro", *(["--pull"] if remote else []))
+            head_ran += [f"{project}:{stage}" for stage in ran_stages(done.stdout)]
+    seconds = time.perf_counter() - start
+    echo(f"suite: done in {seconds:.1f} s; the head ran {', '.join(head_ran) or 'nothing'}")
+    return SuiteRun(tuple(runs), tuple(head_ran), seconds)
+
+
+def _finished(echo, pipeline: str, seconds: float, node: str, ran: tuple[str, ...]) -> PipelineRun:
+    echo(f"finished {pipeline} in {seconds:.1f} s on {node} ({len(ran)} stages ran)")
+    return PipelineRun(pipeline, seconds, node, ran)
+
+
+def _local_tasks(pipelines: list[str], job: dict, workers: int, echo) -> Iterator[PipelineRun]:
+    def task(pipeline: str) -> PipelineRun:
+        echo(f"started  {pipeline}")
+        seconds, ran = build_pipeline(pipeline=pipeline, **job)
+        return _finished(echo, pipeline, seconds, "local", ran)
+
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(task, pipeline) for pipeline in _longest_first(pipelines)]
+        wait(futures, return_when=FIRST_EXCEPTION)
+        for future in futures:
+            future.cancel()  # after a failure, no new pipeline starts; running ones finish
+        for pipeline, future in zip(_longest_first(pipelines), futures, strict=True):
+            if not future.cancelled() and future.exception() is not None:
+                raise SuiteRunError(f"{pipeline}: {future.exception()}")
+        yield from (future.result() for future in futures)
+
+
+def _longest_first(pipelines: list[str]) -> list[str]:
+    """The root (the paper's full protocol, the longest) first, so that it never starts last."""
+    return sorted(pipelines, key=lambda pipeline: pipeline != ".")
+
+
+def _ray_tasks(pipelines: list[str], job: dict, address: str, echo) -> Iterator[PipelineRun]:
+    import ray
+
+    ray.init(address=address, log_to_driver=False, logging_level="ERROR")
+    try:
+        remote_build = ray.remote(num_cpus=1, max_retries=RAY_MAX_RETRIES)(_ray_build)
+        shared = {**job, "bundle": ray.put(job["bundle"])}
+        names = {}
+        for pipeline in _longest_first(pipelines):
+            echo(f"started  {pipeline}")
+            names[remote_build.remote(pipeline=pipeline, **shared)] = pipeline
+        pending = list(names)
+        while pending:
+            (ready,), pending = ray.wait(pending, num_returns=1)
+            try:
+                seconds, ran, node = ray.get(ready)
+            except ray.exceptions.RayError as error:
+                for ref in pending:
+                    ray.cancel(ref, force=True)
+                cause = getattr(error, "cause", None)
+                raise SuiteRunError(f"{names[ready]}: {cause or error}") from None
+            yield _finished(echo, names[ready], seconds, node, ran)
+    finally:
+        ray.shutdown()
+
+
+def _ray_build(**job) -> tuple[float, tuple[str, ...], str]:
+    import ray
+
+    seconds, ran = build_pipeline(**job)
+    return seconds, ran, ray.get_runtime_context().get_node_id()
+
+
+def _check_reachable(address: str) -> None:
+    """An address nothing answers at is one line now, not a minute of Ray's own retries."""
+    match = re.fullmatch(r"(?:ray://)?([^:/]+):(\d+)", address)
+    if match is None:
+        raise ConfigError(f"--ray: {address!r} is not HOST:PORT (the address `ray start "
+                          f"--head` prints, e.g. 10.0.0.5:6379).")  # fmt: skip
+    try:
+        socket.create_connection((match[1], int(match[2])), timeout=5).close()
+    except OSError as error:
+        raise SuiteRunError(f"--ray: no Ray cluster answers at {address} "
+                            f"({error.strerror or error}).") from None  # fmt: skip
+
+
+def _up_to_date(project: Path) -> bool:
+    """Whether `dvc repro` of a project would run nothing (every lock and output current)."""
+    command = [sys.executable, "-m", "dvc", "status", "--quiet"]
+    env = task_environment(Path(_git_root(project)))
+    return subprocess.run(command, cwd=project, env=env, capture_output=True).returncode == 0
+
+
+def _refuse_uncommitted_inputs(root: Path, projects: list[str]) -> None:
+    """The tasks build the head's commit, so an uncommitted edit of a tracked input (code,
+    params, a DVC file) would be missing there. Locks and DVC outputs may differ: they are
+    what the run rewrites."""
+    changed = _run(root, {}, "git", "diff", "--name-only", "HEAD").stdout.splitlines()
+    inputs = [path for path in changed if Path(path).name != "dvc.lock"]
+    if inputs:
+        outputs = set().union(*(_dvc_outputs(root, root / project) for project in projects))
+        inputs = [path for path in inputs if path not in outputs]
+    if inputs:
+        raise ConfigError(f"{', '.join(inputs[:3])}{' …' if len(inputs) > 3 else ''}: "
+                          f"uncommitted; the workers build the head's commit, so commit (or "
+                          f"revert) these first.")  # fmt: skip
+
+
+def _dvc_outputs(root: Path, project: Path) -> set[str]:
+    """Every output path of a project's stages, relative to the repository root."""
+    from dvc.repo import Repo
+
+    with Repo(str(project)) as repo:
+        paths = (Path(out.fs_path) for stage in repo.index.stages for out in stage.outs)
+        return {path.relative_to(root).as_posix() for path in paths}
+
+
+def default_remote(root: Path) -> Remote | None:
+    """The root project's default DVC remote (any config level), or None."""
+    from dvc.repo import Repo
+
+    with Repo(str(root)) as repo:
+        name = repo.config["core"].get("remote")
+        if not name:
+            return None
+        return Remote(name, {key: str(value) for key, value in repo.config["remote"][name].items()})
+
+
+def _cache_dir(root: Path) -> str:
+    """The DVC cache every project of the checkout uses (the root's, SUBREPO_FILES)."""
+    return _run(root, {}, "dvc", "cache", "dir").stdout.strip()
+
+
+def _check_writable(root: Path, remote: Remote) -> None:
+    """A remote that refuses is one line before any task starts, not after each has run:
+    write and delete a probe file at its top. (A directory remote may not exist yet: DVC
+    makes it on the first push; a bucket is never created.)"""
+    import uuid
+
+    from dvc.repo import Repo
+
+    try:
+        with Repo(str(root)) as repo:
+            target = repo.cloud.get_remote(remote.name)
+            if target.fs.protocol == "local":
+                target.fs.makedirs(target.path, exist_ok=True)
+            probe = target.fs.join(target.path, f"oodrl-suite-probe-{uuid.uuid4().hex}")
+            target.fs.pipe_file(probe, b"")
+            target.fs.rm_file(probe)
+    except Exception as error:  # noqa: BLE001 - any refusal, whatever the filesystem raises
+        why = str(error).splitlines()[0] if str(error) else type(error).__name__
+        raise SuiteRunError(f"DVC remote {remote.name!r} ({remote.options.get('url')}) "
+                            f"refuses a write: {why}") from None  # fmt: skip
+
+
+def _bundle(root: Path) -> bytes:
+    """The head's commit and its history in one file: a task on any node clones from it."""
+    with tempfile.TemporaryDirectory(prefix="oodrl-suite-") as scratch:
+        path = Path(scratch) / "head.bundle"
+        _run(root, {}, "git", "bundle", "create", "-q", str(path), "HEAD")
+        return path.read_bytes()

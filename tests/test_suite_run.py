@@ -1,0 +1,80 @@
+"""`oodrl suite run` (SPEC §16): every pipeline in its own clone, in parallel, then the
+leaderboard; the head's checkout ends with the dvc.lock files of a serial run, byte for byte."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from suite_repo import SUITE, checkout, head_commit, locks, serial_suite, two_environment_suite
+from typer.testing import CliRunner
+
+from oodrl.cli import app
+from oodrl.suite_run import run_suite
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="session")
+def commit(repo_root) -> str:
+    return head_commit(repo_root)
+
+
+@pytest.fixture(scope="session")
+def serial_locks(tmp_path_factory, repo_root, commit) -> dict[str, bytes]:
+    """The locks a serial build of the two-environment suite writes."""
+    repo = two_environment_suite(repo_root, commit, tmp_path_factory.mktemp("serial") / "repo")
+    ran = serial_suite(repo)
+    assert f"{SUITE}:leaderboard" in ran and len(ran) > 20
+    return locks(repo)
+
+
+@pytest.fixture
+def fresh_suite(repo_root, commit, tmp_path) -> Path:
+    return two_environment_suite(repo_root, commit, tmp_path / "repo")
+
+
+def test_local_workers_leave_the_locks_of_a_serial_run(fresh_suite, serial_locks):
+    lines = []
+    first = run_suite(fresh_suite, workers=2, echo=lines.append)
+    assert locks(fresh_suite) == serial_locks
+    assert sorted(run.pipeline for run in first.pipelines) == [".", "pipeline/cartpole"]
+    assert all(run.ran for run in first.pipelines)  # each clone computed its pipeline
+    # The head restores every stage from the run-cache the workers filled; what DVC cannot
+    # cache (check_params and train_policy keep persistent outputs) runs again, in seconds.
+    restorable = {s.split(":")[-1] for s in first.head_ran} - {"check_params", "train_policy"}
+    assert restorable == {"leaderboard"}
+    assert sum(line.startswith("started") for line in lines) == 2
+    assert sum(line.startswith("finished") for line in lines) == 2
+
+    again = run_suite(fresh_suite, workers=2, echo=lines.append)
+    assert (again.pipelines, again.head_ran) == ((), ())
+    assert "up to date" in lines[-1]
+    assert locks(fresh_suite) == serial_locks
+
+
+def test_an_uncommitted_input_is_refused_before_anything_runs(fresh_suite):
+    params = fresh_suite / "params.yaml"
+    params.write_text(params.read_text().replace("n_boot: 20", "n_boot: 21"))
+    before = locks(fresh_suite)
+    result = CliRunner().invoke(app, ["suite", "run", "--root", str(fresh_suite)])
+    assert result.exit_code == 2
+    assert result.output.count("\n") == 1 and "params.yaml: uncommitted" in result.output
+    assert locks(fresh_suite) == before
+
+
+def test_an_unreachable_ray_address_is_one_line_and_changes_nothing(fresh_suite):
+    before = checkout(fresh_suite)
+    result = CliRunner().invoke(
+        app, ["suite", "run", "--root", str(fresh_suite), "--ray", "127.0.0.1:9"]
+    )
+    assert result.exit_code == 1
+    assert result.output.count("\n") == 1
+    assert "no Ray cluster answers at 127.0.0.1:9" in result.output
+    assert checkout(fresh_suite) == before
+
+
+def test_workers_must_be_positive(fresh_suite):
+    result = CliRunner().invoke(app, ["suite", "run", "--root", str(fresh_suite), "--workers", "0"])
+    assert result.exit_code == 2
+    assert "--workers must be >= 1. Got 0 instead." in result.output
