@@ -20,11 +20,14 @@ import re
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from oodrl.errors import ConfigError, ContractError, OodrlError
+
+if TYPE_CHECKING:
+    from oodrl.core.adapter import EnvironmentAdapter
 
 NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]*")
 #: The first seed of the held-out episodes of the policy's report, and the seed of the clean
@@ -80,7 +83,6 @@ def new_pipeline(
         report = _make_policy(
             policy, train, env_id, models, steps=steps, episodes=episodes, seed=seed
         )
-        from oodrl.envs.generic import fault_support
         from oodrl.policies.load import load_policy
 
         support = fault_support(adapter, list(shared["benchmark"]["injectors"]))
@@ -101,6 +103,23 @@ def new_pipeline(
     supported = tuple(n for n, reason in support.items() if reason is None)
     left_out = {n: reason for n, reason in support.items() if reason is not None}
     return NewPipeline(directory, env_id, T, supported, left_out, report)
+
+
+def fault_support(adapter: EnvironmentAdapter, injectors: list[str]) -> dict[str, str | None]:
+    """Each injector → None where the environment supports it, else the reason it is left out.
+
+    Dynamics faults (`ScalingInjector`s) need the state vector; every other fault needs only
+    observations and actions, which every environment has. The suite's own adapters have a
+    tested state vector (tests/envs/test_adapters.py); a generic one is probed here.
+    """
+    from oodrl.envs.generic import GenericAdapter, probe_state
+    from oodrl.injectors import INJECTORS
+    from oodrl.injectors.online import ScalingInjector
+
+    dynamics = [n for n in injectors if issubclass(INJECTORS.get(n), ScalingInjector)]
+    probed = dynamics and isinstance(adapter, GenericAdapter)
+    reason = probe_state(adapter) if probed else None
+    return {name: reason if name in dynamics else None for name in injectors}
 
 
 def _check_name(name: str, directory: Path) -> None:

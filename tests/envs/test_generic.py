@@ -11,11 +11,12 @@ from rollout_policies import LinearPolicy
 from oodrl.core.spec import AnomalySpec
 from oodrl.envs import ENVIRONMENTS, GENERIC_ADAPTER
 from oodrl.envs.collect import collect
-from oodrl.envs.generic import GenericAdapter, fault_support, probe_state
+from oodrl.envs.generic import GenericAdapter, probe_state
 from oodrl.envs.mujoco import HopperAdapter, MujocoHandle
 from oodrl.errors import ContractError, RegistryError
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.online import DynamicsScaling
+from oodrl.new import fault_support
 
 #: id: (action kind, action size, observation size), as gymnasium documents them.
 OUTSIDE = {

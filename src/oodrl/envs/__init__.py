@@ -8,9 +8,10 @@ adapter (`oodrl.envs.generic`, SPEC §18).
 from typing import Any
 
 from oodrl.errors import RegistryError
-from oodrl.registry import Registry
+from oodrl.registry import Registry, import_path
 
 GENERIC_ADAPTER = "oodrl.envs.generic:GenericAdapter"
+GENERIC_FACTORY = "oodrl.envs.generic:generic_adapter"
 
 
 class EnvironmentRegistry(Registry):
@@ -31,9 +32,9 @@ class EnvironmentRegistry(Registry):
     def get(self, name: str) -> Any:
         if ":" in name or name in self or self.path(name) != GENERIC_ADAPTER:
             return super().get(name)
-        from oodrl.envs.generic import generic_adapter
-
-        return generic_adapter(name)
+        # By import path, as every adapter here: a stage's code stamp lists the generic module
+        # only where its environment uses it (oodrl.pipeline.component_modules).
+        return import_path(GENERIC_FACTORY)(name)
 
 
 ENVIRONMENTS = EnvironmentRegistry("environment")

@@ -5,8 +5,8 @@ both need nothing but the Gymnasium API. Dynamics faults scale the increment of 
 the adapter reads and writes back; generically that exists for MuJoCo environments only
 (`qpos` then `qvel`, through `set_state`, as `oodrl.envs.mujoco`), and only where writing a
 state back gives that state and a twin that moves as the original does (`probe_state`). Every
-other environment gets a handle that refuses, naming why; `fault_support` lists each injector
-with what keeps it out.
+other environment gets a handle that refuses, naming why (`oodrl.new.fault_support` lists each
+fault left out with it).
 
 `generic_adapter(env_id)` is the adapter class of one id; `oodrl.envs.ENVIRONMENTS` hands it
 out for every Gymnasium id the suite does not register.
@@ -157,19 +157,3 @@ def probe_state(adapter: EnvironmentAdapter, seed: int = 0) -> str | None:
     finally:
         env_a.close()
         env_b.close()
-
-
-def fault_support(adapter: EnvironmentAdapter, injectors: list[str]) -> dict[str, str | None]:
-    """Each injector → None where the environment supports it, else the reason it is left out.
-
-    Dynamics faults (`ScalingInjector`s) need the state vector; every other fault needs only
-    observations and actions, which every environment has. The suite's own adapters have a
-    tested state vector (tests/envs/test_adapters.py); a generic one is probed here.
-    """
-    from oodrl.injectors import INJECTORS
-    from oodrl.injectors.online import ScalingInjector
-
-    dynamics = [n for n in injectors if issubclass(INJECTORS.get(n), ScalingInjector)]
-    probed = dynamics and isinstance(adapter, GenericAdapter)
-    reason = probe_state(adapter) if probed else None
-    return {name: reason if name in dynamics else None for name in injectors}
