@@ -32,8 +32,8 @@ from oodrl.testing import (
 )
 
 #: Short streams and small models, so that every library runs the whole contract in seconds.
-DISCRETE = linear_system_trajectories(10, T=60, episode_length=40, seed=0)
-CONTINUOUS = linear_system_trajectories(10, T=60, episode_length=40, action_dim=2, seed=0)
+DISCRETE = linear_system_trajectories(10, T=40, episode_length=30, seed=0)
+CONTINUOUS = linear_system_trajectories(10, T=40, episode_length=30, action_dim=2, seed=0)
 
 
 def splits(data):
@@ -241,7 +241,7 @@ def test_time_index_scores_the_step_and_streams_it():
     check_not_fitted(TimeIndex(), evaluation[0])
     check_reproducible(TimeIndex, fit, evaluation)
     detector = TimeIndex().fit(fit)
-    np.testing.assert_array_equal(detector.score(evaluation[0]).scores, np.arange(60.0))
+    np.testing.assert_array_equal(detector.score(evaluation[0]).scores, np.arange(40.0))
     check_score_is_pure(detector, evaluation)
     check_state_dim(detector, evaluation[0])
     check_threshold(detector, calibration)

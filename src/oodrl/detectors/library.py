@@ -122,10 +122,11 @@ def library_detectors_named(detector_blocks: Any) -> dict[str, str]:
         for name, block in sorted((detector_blocks or {}).items())
         if isinstance(block, dict) and isinstance(block.get("class"), str)
     }
+    classes = {name: DETECTORS.get(path) for name, path in named.items()}
     return {
-        name: path
-        for name, path in named.items()
-        if issubclass(DETECTORS.get(path), LibraryDetector)
+        name: named[name]
+        for name, cls in classes.items()
+        if isinstance(cls, type) and issubclass(cls, LibraryDetector)
     }
 
 
