@@ -154,6 +154,10 @@ def metric_label(metric: str, alpha: float | None = None) -> str:
     return label
 
 
+def _count(n: int, noun: str, plural: str | None = None) -> str:
+    return f"{n} {noun if n == 1 else plural or noun + 's'}"
+
+
 def _interval(value: Interval) -> str:
     return f"{value.value:.3f} [{value.ci_low:.3f}, {value.ci_high:.3f}]"
 
@@ -200,7 +204,8 @@ def _section(
         rows.append(row)
     flagged = sum(1 for task in overall.tasks if task in board.flagged)
     lines = [
-        f"## Tier `{tier}`: mean {label} per detector and environment ({overall.n_cells} cells)",
+        f"## Tier `{tier}`: mean {label} per detector and environment "
+        f"({_count(overall.n_cells, 'cell')})",
         "",
         *_table(header, rows),
         "",
@@ -212,7 +217,7 @@ def _section(
     families = board.families[(metric, tier)]
     names = list(families)
     lines += [f"### By fault family (IQM of {label} [95% CI])", ""]
-    fam_header = ["detector", *(f"{f} ({families[f].n_cells} cells)" for f in names)]
+    fam_header = ["detector", *(f"{f} ({_count(families[f].n_cells, 'cell')})" for f in names)]
     fam_rows = [[d, *(_interval(families[f].iqm[d]) for f in names)] for d in order]
     lines += [*_table(fam_header, fam_rows), ""]
     quoted = [t for t in QUOTED_TAUS if t in overall.taus]
@@ -340,8 +345,8 @@ def markdown(
     lines = [
         "# Suite leaderboard",
         "",
-        f"Protocol version {stamp}; {len(lead.environments)} environments; "
-        f"{len(policies)} {'policy' if len(policies) == 1 else 'policies'} "
+        f"Protocol version {stamp}; {_count(len(lead.environments), 'environment')}; "
+        f"{_count(len(policies), 'policy', 'policies')} "
         f"({', '.join(policies)}); tiers {', '.join(board.tiers)}; metrics "
         f"{', '.join(metric_label(m, alpha) for m in board.metrics)}.",
         "",
