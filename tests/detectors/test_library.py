@@ -335,3 +335,20 @@ def test_the_peer_families_blocks_validate_fit_and_stream(default_params):
         detector = params.detector(name).fit(fit)
         assert detector.machine_independent == (name == "time_index")
         check_streaming(detector, evaluation[:1])
+
+
+def test_cross_kernel_checks_run_the_certified_detectors(default_params):
+    from oodrl.testing.kernels import certified_only, detector_outputs
+
+    default_params["detectors"]["pyod_knn"] = {"class": "pyod.models.knn:KNN"}
+    default_params["benchmark"]["detectors"].append("pyod_knn")
+    certified, left_out = certified_only(default_params)
+    assert left_out == ["pyod_knn"]
+    assert certified["benchmark"]["detectors"] == default_params["benchmark"]["detectors"][:-1]
+    assert "pyod_knn" in default_params["benchmark"]["detectors"]  # the input is not changed
+    hashes = {"models/pyod_knn.pkl": "a", "scores/pyod_knn/eval.zarr": "b",
+              "scores/pyod_knn_2/eval.zarr": "c", "data/id.zarr": "d"}  # fmt: skip
+    assert detector_outputs(hashes, "pyod_knn") == {
+        "models/pyod_knn.pkl": "a",
+        "scores/pyod_knn/eval.zarr": "b",
+    }
