@@ -175,6 +175,9 @@ def test_missing_old_or_partial_results_are_one_line_errors(results, tmp_path: P
     )
     with pytest.raises(StoreError, match="lacks per-episode detection_rate@100"):
         read_inputs(results | {"Hopper-v5": partial})
+    fewer = write_results(tmp_path / "e" / "results.yaml", 4, {"cusum": 0.9, "pedm": 0.7})
+    with pytest.raises(StoreError, match="no records of kde_density on"):
+        read_inputs(results | {"Hopper-v5": fewer})
 
 
 def test_the_stage_reads_headline_and_tier_results_of_every_environment(tmp_path: Path):

@@ -133,14 +133,25 @@ def read_inputs(results: ResultsPaths) -> Inputs:
                         row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
                         row[detector] = value
     in_tier: dict[str, set[str]] = {}
-    for (cell, _), (_, found) in metrics_of.items():
+    detectors_in_tier: dict[str, set[str]] = {}
+    detectors_of: dict[Cell, tuple[Path, set[str]]] = {}
+    for (cell, detector), (path, found) in metrics_of.items():
         in_tier.setdefault(cell.tier, set()).update(found)
+        detectors_in_tier.setdefault(cell.tier, set()).add(detector)
+        detectors_of.setdefault(cell, (path, set()))[1].add(detector)
     for (cell, detector), (path, found) in metrics_of.items():
         if found != in_tier[cell.tier]:
             raise StoreError(
                 f"{path}: {detector} on {tuple(cell)} lacks per-episode "
                 f"{', '.join(sorted(in_tier[cell.tier] - found))}, which other records of tier "
                 f"{cell.tier} have; re-run its metrics stage."
+            )
+    for cell, (path, found) in detectors_of.items():
+        if found != detectors_in_tier[cell.tier]:
+            raise StoreError(
+                f"{path}: no records of {', '.join(sorted(detectors_in_tier[cell.tier] - found))} "
+                f"on {tuple(cell)}, which other results of tier {cell.tier} have; every cell of "
+                f"a tier needs the same detectors (benchmark.detectors)."
             )
     version = one_protocol_version(documents)
     alpha = next(iter(alphas)) if len(alphas) == 1 else None
