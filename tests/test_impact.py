@@ -146,6 +146,16 @@ def test_a_noisy_non_monotone_curve_is_fitted_monotone_before_reading_tiers():
     assert tiers["mild"] == pytest.approx(0.125)
     assert tiers["moderate"] == pytest.approx(0.4 + 0.02 / 0.22 * 0.2, abs=1e-6)
     assert tiers["severe"] == pytest.approx(0.4 + 0.17 / 0.22 * 0.2, abs=1e-6)
+    assert record["return_above_clean"] == []
+
+
+def test_a_fault_that_raises_the_return_is_flagged_and_its_tiers_unreachable():
+    rng = np.random.default_rng(0)
+    clean = 10 + rng.standard_normal(30)
+    returns = Returns(clean, {0.5: clean + 2.0, 1.0: clean + 3.0}, rng.standard_normal(30))
+    record = impact_record(returns, n_boot=200)
+    assert record["return_above_clean"] == [0.5, 1.0]
+    assert {t["severity"] for t in record["tiers"].values()} == {UNREACHABLE}
 
 
 def test_a_policy_no_better_than_random_is_refused():

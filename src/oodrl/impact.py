@@ -19,12 +19,13 @@ since severity 0 reproduces the clean episodes) are fitted by an isotonic, monot
 non-increasing regression (pool-adjacent-violators, scikit-learn's IsotonicRegression, equal
 weights). A fault is taken not to help the agent more as it grows stronger; where the raw
 estimates go up, noise is the explanation, and pooling adjacent violators is the least-squares
-curve that respects it. Tiers are read on that fitted curve: the severity at which it first
-falls to the level, interpolated linearly between grid points, so mild ≤ moderate ≤ severe by
-construction. A level the fitted curve does not reach on the grid is "unreachable", never
-clipped to the largest σ. Confidence intervals: a percentile bootstrap (π's episodes resampled
-jointly across the clean run and every σ, the random policy's on their own), the isotonic fit
-and the tier read again in every replicate.
+curve that respects it. Severities whose whole CI lies above R̃ = 1 (the fault raises the
+return) are listed in `return_above_clean`. Tiers are read on that fitted curve: the severity at
+which it first falls to the level, interpolated linearly between grid points, so
+mild ≤ moderate ≤ severe by construction. A level the fitted curve does not reach on the grid
+is "unreachable", never clipped to the largest σ. Confidence intervals: a percentile bootstrap
+(π's episodes resampled jointly across the clean run and every σ, the random policy's on their
+own), the isotonic fit and the tier read again in every replicate.
 """
 
 from __future__ import annotations
@@ -260,7 +261,10 @@ def impact_record(
         }
         for i, s in enumerate(severities)
     ]
-    return {"curve": curve, "tiers": tiers}
+    # A fault that raises the return beyond its CI is worth a look before trusting its tiers
+    # (LunarLander's dynamics faults: rewards that do not telescope, docs/SPEC.md §15).
+    above = [float(s) for i, s in enumerate(severities) if low[i] > 1.0]
+    return {"curve": curve, "tiers": tiers, "return_above_clean": above}
 
 
 def minimum_detectable_impact(
