@@ -7,7 +7,7 @@ faulty stream where the metrics stage computes operating points), and name their
 ``operating_point.alpha`` is the false-alarm budget of its detection rate; a document's
 ``minimum_detectable_impact`` maps detector → fault → criterion → the smallest return loss
 1 − R̃ at which the criterion is met, or "beyond range". Every file carries a protocol version
-(`oodrl.metrics.leaderboard.protocol_stamp`; unstamped files are version 1) and files of two
+(`oodrl.metrics.stamp.protocol_stamp`; unstamped files are version 1) and files of two
 versions are refused. Aggregation: `oodrl.metrics.leaderboard.build_board`.
 """
 
