@@ -165,7 +165,10 @@ class LibraryDetector(BaseDetector):
         The feature view of a step (see the module docstring).
     window : int >= 1, default 8
         L, the states stacked by the "window" view (ignored by the others). 8 steps: a short
-        history, 0.16 s of LunarLander (50 Hz), that keeps kNN's brute-force distances cheap.
+        history, 0.16 s of LunarLander (50 Hz). Past 15 columns scikit-learn's neighbour
+        searches go brute force, whose BLAS rounding may differ alone and in a batch: such a
+        model scores one row at a time (see the module docstring), unless it is told to use a
+        tree (`algorithm: kd_tree`).
     standardize : bool, default True
         Centre and scale each column on the fit set before the library sees it.
     **library_params
