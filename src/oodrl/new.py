@@ -266,7 +266,7 @@ def params_text(
         "",
         "env:",
         f"  id: {env_id}",
-        f"  T: {T}".ljust(30) + "# steps per stream: the episode length (max_episode_steps)",
+        f"  T: {T}".ljust(30) + f"# steps per stream ({_length_note(env_id, T)})",
         "  onset: null".ljust(30) + f"# floor(T/3) = {default_onset(T)}",
         "",
         "policy:",
@@ -283,6 +283,13 @@ def params_text(
         *(f"    {key}: {_flow(block)}" for key, block in sorted(blocks.items())),
     ]
     return "\n".join(lines) + "\n"
+
+
+def _length_note(env_id: str, T: int) -> str:  # noqa: N803
+    import gymnasium
+
+    length = gymnasium.spec(env_id).max_episode_steps
+    return "the episode length" if length == T else f"--T; episodes last up to {length}"
 
 
 def faults_text(env_id: str, support: dict[str, str | None]) -> str:
@@ -324,7 +331,10 @@ def summary(made: NewPipeline, root: Path) -> str:
         f"{where}: {made.env_id}, T={made.T}; policy mean return {evaluation['mean']:.1f} over "
         f"{evaluation['episodes']} held-out episodes",
         f"faults: {', '.join(made.supported)}",
-        *(f"left out: {name}: {reason}" for name, reason in made.left_out.items()),
+        *(
+            f"left out: {', '.join(n for n, r in made.left_out.items() if r == reason)}: {reason}"
+            for reason in dict.fromkeys(made.left_out.values())
+        ),
         f"next: (cd {where} && dvc repro), then oodrl show {where}/reports/results.yaml",
     ]
     return "\n".join(lines)
