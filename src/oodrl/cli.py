@@ -254,40 +254,44 @@ def monitor(
 @command("impact")
 def impact(
     policy: Annotated[Path, PathOption()],
-    out: Annotated[Path, PathOption(help="impact.yaml: every fault's curve and tiers")],
-    table: Annotated[Path, PathOption(help="the tiers as a markdown table")],
-    figure: Annotated[Path, PathOption(help="the impact curves (PNG)")],
+    out: Annotated[Path, PathOption(help="impact.yaml: each fault's curve and tiers")],
+    faults: Annotated[
+        list[str] | None,
+        typer.Argument(help="faults to calibrate (default: every one of benchmark.injectors)"),
+    ] = None,
+    table: Annotated[Path | None, PathOption(help="also the tiers as a markdown table")] = None,
+    figure: Annotated[Path | None, PathOption(help="also the impact curves (PNG)")] = None,
     id: Annotated[  # noqa: A002 - the option is --id
         Path | None,
         typer.Option(help="clean ID set: the live observation faults' reference statistics"),
     ] = None,
-    injector: Annotated[
-        list[str] | None, typer.Option(help="fault to calibrate (repeat; default: all benchmarked)")
-    ] = None,
     grid: Annotated[
-        str, typer.Option(help="severities, comma-separated")
-    ] = "0.1,0.2,0.3,0.4,0.5,0.6,0.7,0.8,0.9,1.0",
-    episodes: Annotated[int, typer.Option(min=2, help="whole episodes per severity")] = 100,
+        str | None, typer.Option(help="severities, comma-separated (default: tiers.grid)")
+    ] = None,
+    episodes: Annotated[
+        int | None,
+        typer.Option(min=2, help="episodes per severity (default: tiers.episodes)"),
+    ] = None,
     horizon: Annotated[
         int | None, typer.Option(min=1, help="longest episode (default: the time limit)")
     ] = None,
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Impact tiers (SPEC §15): each fault's normalised return over whole episodes on a severity
+    """Stage impact (SPEC §15): each fault's normalised return over whole episodes on a severity
     grid, and the severities of the mild, moderate and severe tiers."""
     from oodrl.stages.impact import run_impact
 
+    config = _load(params)
     try:
-        severities = [float(s) for s in grid.split(",")]
+        severities = config.tiers.grid if grid is None else [float(s) for s in grid.split(",")]
     except ValueError:
         raise ConfigError(f"--grid must be comma-separated numbers; got {grid!r}.") from None
-    config = _load(params)
-    for name in injector or []:
+    for name in faults or []:
         _known(name, config.benchmark.injectors, "benchmark.injectors")
-    with _stage("impact"):
+    with _stage(f"impact@{faults[0]}" if faults and len(faults) == 1 else "impact"):
         run_impact(
-            config, policy, out, table, figure, id_path=id, injectors=injector,
-            grid=severities, n_episodes=episodes, horizon=horizon,
+            config, policy, out, table, figure, id_path=id, injectors=faults,
+            grid=severities, n_episodes=episodes or config.tiers.episodes, horizon=horizon,
         )  # fmt: skip
 
 
@@ -417,6 +421,38 @@ def collect_ood(
         run(config, injector, policy, eval, out)
 
 
+@command("collect-calibration")
+def collect_calibration(
+    policy: Annotated[Path, PathOption()],
+    out: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage collect_calibration: held-out clean streams of the per-stream alarm rule."""
+    from oodrl.stages.collect import collect_calibration as run
+
+    config = _load(params)
+    with _stage("collect_calibration"):
+        run(config, policy, out)
+
+
+@command("collect-tiers")
+def collect_tiers(
+    injector: Annotated[str, typer.Argument()],
+    policy: Annotated[Path, PathOption()],
+    impact: Annotated[Path, PathOption(help="the fault's impact document")],
+    id: Annotated[Path, PathOption(help="clean ID set: live faults' reference statistics")],  # noqa: A002
+    out: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage collect_tiers: the evaluation streams with one fault live at each reachable tier."""
+    from oodrl.stages.impact import collect_tiers as run
+
+    config = _load(params)
+    _known(injector, config.benchmark.injectors, "benchmark.injectors")
+    with _stage(f"collect_tiers@{injector}"):
+        run(config, injector, policy, impact, id, out)
+
+
 @command("fit")
 def fit(
     detector: Annotated[str, typer.Argument()],
@@ -443,33 +479,63 @@ def score(
     eval: Annotated[Path | None, PathOption()] = None,  # noqa: A002 - the option is --eval
     ood: Annotated[Path | None, PathOption()] = None,
     sweep: Annotated[Path | None, PathOption()] = None,
+    calibration: Annotated[Path | None, PathOption()] = None,
+    tiers: Annotated[Path | None, PathOption()] = None,
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Stages score_clean, score and score_sweep: one detector on the clean evaluation set
-    (--eval), or on one injector's headline set (--injector, --ood) or its sweep (--sweep)."""
+    """Stages score_clean, score_calibration, score, score_sweep and score_tiers: one detector
+    on the clean evaluation set (--eval) or calibration streams (--calibration), or on one
+    injector's headline set (--injector, --ood), its sweep (--sweep) or its tiers (--tiers)."""
     from oodrl.layout import detector_stage
     from oodrl.stages import score as stages
 
     config = _load(params)
     _known(detector, config.benchmark.detectors, "benchmark.detectors")
-    inputs = {"--eval": eval, "--ood": ood, "--sweep": sweep}
+    inputs = {"--eval": eval, "--calibration": calibration, "--ood": ood, "--sweep": sweep,
+              "--tiers": tiers}  # fmt: skip
     given = [option for option, path in inputs.items() if path is not None]
-    if len(given) != 1 or (injector is None) != (given == ["--eval"]):
+    clean = given in (["--eval"], ["--calibration"])
+    if len(given) != 1 or (injector is None) != clean:
         raise ConfigError(
-            f"score needs exactly one of --eval (clean set), --injector with --ood (headline "
-            f"set), or --injector with --sweep (sweep sets); got {', '.join(given) or 'none'}."
+            f"score needs exactly one of --eval (clean set), --calibration (calibration "
+            f"streams), or --injector with one of --ood (headline set), --sweep (sweep sets), "
+            f"--tiers (tier sets); got {', '.join(given) or 'none'}."
         )
     if eval is not None:
         with _stage(detector_stage(detector, "score_clean")):
             stages.score_clean(detector, model, eval, out)
         return
+    if calibration is not None:
+        with _stage(detector_stage(detector, "score_calibration")):
+            stages.score_calibration(detector, model, calibration, out)
+        return
     _known(injector, config.benchmark.injectors, "benchmark.injectors")
     if ood is not None:
         with _stage(detector_stage(detector, "score", injector)):
             stages.score_headline(detector, injector, model, ood, out)
-    else:
+    elif sweep is not None:
         with _stage(detector_stage(detector, "score_sweep", injector)):
             stages.score_sweep(detector, injector, model, sweep, out)
+    else:
+        with _stage(detector_stage(detector, "score_tiers", injector)):
+            stages.score_tiers(detector, injector, model, tiers, out)
+
+
+@command("tier-metrics")
+def tier_metrics(
+    scores: Annotated[Path, PathOption()],
+    impact: Annotated[Path, PathOption(help="the directory of the faults' impact documents")],
+    results: Annotated[Path, PathOption(help="tier_results.yaml")],
+    report: Annotated[Path, PathOption(help="directory: tables.md, impact_curves.png")],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage tier_metrics: every detector at every fault's impact tiers, at the per-stream
+    false-alarm budget (SPEC §15)."""
+    from oodrl.stages.tier_metrics import run_tier_metrics
+
+    config = _load(params)
+    with _stage("tier_metrics"):
+        run_tier_metrics(config, scores, impact, results, report)
 
 
 @command("metrics")

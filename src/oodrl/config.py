@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
+from fractions import Fraction
 from pathlib import Path
 from typing import Any, Literal
 
@@ -73,6 +75,22 @@ class MetricsConfig(_Section):
     traces_per_anomaly: int = Field(1, ge=0)
 
 
+class TiersConfig(_Section):
+    """The `tiers` block (SPEC §15): impact calibration, the tiers' detection streams and the
+    per-stream operating point. Each fault's impact curve is measured on `grid` over `episodes`
+    whole episodes (π and the random policy each); the per-stream alarm rule is calibrated on
+    `n_calibration` held-out clean streams (seeds `seed + calibration_seed_offset + j`) at
+    false-alarm budget `alpha`; `detection_rate@K` counts first alarms within `k` steps of the
+    onset."""
+
+    grid: list[float] = Field(default_factory=lambda: [round(0.1 * i, 1) for i in range(1, 11)])
+    episodes: int = Field(30, ge=2)
+    n_calibration: int = Field(39, ge=1)
+    calibration_seed_offset: int = Field(20_000, ge=1)
+    alpha: float = Field(0.05, gt=0, lt=1)
+    k: int = Field(100, ge=0)
+
+
 class ExecutorConfig(_Section):
     # 0 = all available cores. Results are identical for any worker count, so no stage lists
     # this key as a DVC param: changing it re-runs nothing.
@@ -105,6 +123,7 @@ class Params(_Section):
     anomaly: AnomalyConfig = AnomalyConfig()
     detectors: dict[str, dict[str, Any]] = Field(default_factory=dict)
     metrics: MetricsConfig = MetricsConfig()
+    tiers: TiersConfig = TiersConfig()
     executor: ExecutorConfig = ExecutorConfig()
 
     @model_validator(mode="after")
@@ -130,6 +149,25 @@ class Params(_Section):
             raise ValueError(f"anomaly.sweep: every severity must be in [0, 1]; got {grid}")
         if any(b <= a for a, b in zip(grid, grid[1:], strict=False)):
             raise ValueError(f"anomaly.sweep: must be strictly increasing; got {grid}")
+        tiers = self.tiers
+        if any(b <= a for a, b in zip(tiers.grid, tiers.grid[1:], strict=False)) or not all(
+            0 < s <= 1 for s in tiers.grid
+        ):
+            raise ValueError(
+                f"tiers.grid: must be strictly increasing severities in (0, 1]; got {tiers.grid}"
+            )
+        needed = math.ceil(1 / Fraction(str(tiers.alpha))) - 1
+        if tiers.n_calibration < needed:
+            raise ValueError(
+                f"tiers.n_calibration: the per-stream rule at alpha={tiers.alpha} needs at least "
+                f"{needed} clean calibration streams (ceil(1/alpha) - 1); got "
+                f"{tiers.n_calibration}"
+            )
+        if tiers.calibration_seed_offset == self.data.eval_seed_offset:
+            raise ValueError(
+                "tiers.calibration_seed_offset: must differ from data.eval_seed_offset (the "
+                "calibration streams would replay the evaluation streams)"
+            )
         for key, names, blocks in (
             ("detectors", self.benchmark.detectors, self.detectors),
             ("injectors", self.benchmark.injectors, self.anomaly.injectors),

@@ -34,7 +34,7 @@ import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -42,6 +42,9 @@ from oodrl.core.adapter import EnvironmentAdapter
 from oodrl.core.injector import OnlineInjector
 from oodrl.core.policy import Policy
 from oodrl.errors import ConfigError, ContractError
+
+if TYPE_CHECKING:
+    from oodrl.config import Params
 
 #: The tiers: the normalised return R̃ at which each begins (SPEC §15).
 LEVELS = {"mild": 0.95, "moderate": 0.90, "severe": 0.75}
@@ -156,6 +159,34 @@ def random_policy_returns(
     seeds = [seed + RANDOM_SEED_OFFSET + j for j in range(n_episodes)]
     tset = collect(adapter, UniformRandomPolicy(adapter), seeds, horizon, policy_seed=seed)
     return first_episode_returns(tset)
+
+
+def live_injectors(
+    params: Params, names: Sequence[str], id_path: Path | None = None
+) -> dict[str, OnlineInjector]:
+    """Each named fault as an online injector from its params block: a post-hoc observation
+    fault becomes its live counterpart (same parameters), whose `mean`/`scale` are the clean ID
+    set's statistics when `id_path` is given (else running statistics, see
+    `oodrl.injectors.live_observation`)."""
+    from oodrl.injectors import INJECTORS
+    from oodrl.injectors.live_observation import LIVE_COUNTERPARTS, reference_statistics
+
+    reference = None
+    if id_path is not None:
+        from oodrl.store import read_trajectories
+
+        reference = reference_statistics(read_trajectories(id_path, stage="collect_id").states)
+    injectors = {}
+    for name in names:
+        block = {k: v for k, v in params.anomaly.injectors.get(name, {}).items() if k != "severity"}
+        live = LIVE_COUNTERPARTS.get(name, name)
+        cls = INJECTORS.get(live)
+        if cls.mode != "online":
+            raise ConfigError(f"Injector '{name}' has no live version; impact needs online faults.")
+        if reference is not None and "scale" in cls().get_params():
+            block = {**reference, **block}
+        injectors[name] = cls.from_params(block)
+    return injectors
 
 
 def monotone_curve(severities: Sequence[float], values: Sequence[float]) -> np.ndarray:

@@ -60,6 +60,10 @@ VERB_COMPONENTS: dict[str, tuple[str, ...]] = {
     "collect-ood": ("injector", "environment"),
     "collect-id": ("environment",),
     "collect-eval": ("environment",),
+    "collect-calibration": ("environment",),
+    "collect-tiers": ("injector", "environment"),
+    "impact": ("injector", "environment"),
+    "tier-metrics": ("detectors",),  # every benchmark detector, built for its latency
     "render": ("environment", "detectors"),  # it streams every benchmark detector (its cost)
     "metrics": ("detectors",),  # every benchmark detector, built for its latency
 }
@@ -290,6 +294,12 @@ def component_modules(verb: str, name: str | None, params: dict[str, Any]) -> li
             paths = [_component_path("detector", each, params) for each in names]
         else:
             paths = [_component_path(kind, name, params)]
+        if kind in ("detector", "detectors"):
+            from oodrl.detectors import DETECTORS
+
+            # The registry passes every detector class it builds through its adapter (the
+            # library wrapper, SPEC §17), whose module a string names.
+            paths.append(DETECTORS.adapt)
         modules += [path.partition(":")[0] for path in paths]
     return modules
 
@@ -546,7 +556,11 @@ def rendered_suite(root: Path) -> str:
         "cmd": "oodrl leaderboard --out reports",
         "deps": [
             *code,
-            *(project.relative(d.resolve() / "reports" / "results.yaml") for d in environments),
+            *(
+                project.relative(d.resolve() / "reports" / results)
+                for d in environments
+                for results in ("results.yaml", "tier_results.yaml")
+            ),
         ],
         "params": [
             {

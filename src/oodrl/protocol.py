@@ -3,7 +3,9 @@ fit/calibration split of the ID set, and the trajectory sets the collection stag
 
 ID streams use seeds `seed + i`; evaluation streams `seed + eval_seed_offset + j`, so the two
 never share a seed. Every perturbed set re-uses the evaluation seeds: its episodes are the
-matched counterparts of the clean evaluation set's.
+matched counterparts of the clean evaluation set's. The clean calibration streams of the
+per-stream alarm rule (SPEC §15) use `seed + tiers.calibration_seed_offset + j`; impact
+calibration has seed ranges of its own (`oodrl.impact`).
 """
 
 from __future__ import annotations
@@ -28,6 +30,11 @@ def id_seeds(params: Params) -> list[int]:
 
 def eval_seeds(params: Params) -> list[int]:
     return [params.seed + params.data.eval_seed_offset + j for j in range(params.data.n_ood)]
+
+
+def calibration_seeds(params: Params) -> list[int]:
+    offset = params.seed + params.tiers.calibration_seed_offset
+    return [offset + j for j in range(params.tiers.n_calibration)]
 
 
 def fit_calibration_split(params: Params) -> tuple[list[int], list[int]]:
@@ -88,6 +95,12 @@ def id_set(params: Params, policy_path: Path) -> TrajectorySet:
 def eval_set(params: Params, policy_path: Path) -> TrajectorySet:
     """The clean evaluation set: the matched counterparts of every perturbed set."""
     return _clean_set(params, policy_path, eval_seeds(params), "collect_eval", {})
+
+
+def calibration_set(params: Params, policy_path: Path) -> TrajectorySet:
+    """Held-out clean streams (T steps, as the evaluation streams) on which the per-stream
+    alarm rule is calibrated: never fitted on, never the evaluation set's matched twins."""
+    return _clean_set(params, policy_path, calibration_seeds(params), "collect_calibration", {})
 
 
 def perturbed_sets(

@@ -47,6 +47,22 @@ def sweep_scores(
     return groups, {**attrs, "severities": sorted(sweep)}
 
 
+def tier_scores(
+    detector, name: str, injector: str, sets: Mapping[float, TrajectorySet], attrs: Mapping
+) -> tuple[Groups, dict]:
+    """The groups and attributes of a detector's score store of one fault's tier streams (one
+    group per reachable tier's severity; none when every tier is unreachable)."""
+    groups = {
+        severity_key(s): _labelled(detector, name, tset, f"{injector} (σ = {s})")
+        for s, tset in sets.items()
+    }
+    spec = sets[min(sets)].attrs["spec"] if sets else None
+    return groups, {
+        **_detector_attrs(detector, name), "injector": injector, "mode": attrs["mode"],
+        "spec": spec, "tiers": dict(attrs["tiers"]), "unreachable": list(attrs["unreachable"]),
+    }  # fmt: skip
+
+
 def score_set(detector, name: str, tset: TrajectorySet, condition: str) -> np.ndarray:
     """Scores (N, T); a failure names the detector, the condition and the episode."""
     trajectories = tset.trajectories()

@@ -264,6 +264,14 @@ def read_sweep(path: Path, stage: str | None = None) -> dict[float, TrajectorySe
     return {float(s): _set_from(*groups[severity_key(s)]) for s in groups[""][1]["severities"]}
 
 
+def read_tier_sets(path: Path, stage: str | None = None) -> tuple[dict[float, TrajectorySet], dict]:
+    """A tier store (written as a sweep by collect_tiers): its sets by severity, and its root
+    attributes (tiers: tier -> severity, unreachable tiers, mode)."""
+    groups = read_store(path, SWEEP_FORMAT, stage)
+    attrs = groups[""][1]
+    return {float(s): _set_from(*groups[severity_key(s)]) for s in attrs["severities"]}, attrs
+
+
 # -- score arrays ------------------------------------------------------------------------------
 def write_scores(
     path: Path, groups: Mapping[str, Mapping[str, np.ndarray]], attrs: Mapping[str, Any]

@@ -24,18 +24,25 @@ def detector_stages(detector: str) -> list[str]:
     return [
         detector_stage(detector, "fit"),
         detector_stage(detector, "score_clean"),
+        detector_stage(detector, "score_calibration"),
         *injector_scoring([detector], *INJECTORS),
     ]
 
 
 def injector_scoring(detectors: list[str], *injectors: str) -> list[str]:
-    """The headline and sweep scoring stages of `detectors` on `injectors`."""
+    """The headline, sweep and tier scoring stages of `detectors` on `injectors`."""
     return [
         detector_stage(d, stage, i)
         for d in detectors
         for i in injectors
-        for stage in ("score", "score_sweep")
+        for stage in ("score", "score_sweep", "score_tiers")
     ]
+
+
+def injector_stages(injector: str) -> list[str]:
+    """The stages of the environment's dvc.yaml that one injector's knob re-runs."""
+    return [f"{stage}@{injector}" for stage in ("collect_ood", "collect_sweep", "collect_tiers",
+                                                 "impact")]  # fmt: skip
 
 
 def tiny_params(default: dict) -> dict:
@@ -46,6 +53,7 @@ def tiny_params(default: dict) -> dict:
     params["benchmark"] = {"detectors": DETECTORS, "injectors": INJECTORS}
     params["metrics"]["n_boot"] = 20
     params["metrics"]["traces_per_anomaly"] = 1
+    params["tiers"].update(grid=[0.5, 1.0], episodes=2, n_calibration=19)
     params["executor"]["workers"] = 1
     return params
 

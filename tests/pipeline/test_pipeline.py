@@ -6,7 +6,14 @@ import json
 
 import pytest
 import yaml
-from conftest import DETECTORS, INJECTORS, detector_stages, edit_params, injector_scoring
+from conftest import (
+    DETECTORS,
+    INJECTORS,
+    detector_stages,
+    edit_params,
+    injector_scoring,
+    injector_stages,
+)
 
 from oodrl.layout import detector_pipeline, detector_stage
 from oodrl.testing.pipeline import lock_hashes, repro, run
@@ -38,6 +45,7 @@ def test_full_pipeline_writes_every_output(built_repo):
         assert record["metrics"]["matched_auroc"]["n_episodes"] == 3
     nulls = {(r["detector"], r["mode"]) for r in results["records"] if r["kind"] == "null"}
     assert nulls == {(d, m) for d in DETECTORS for m in ("online", "posthoc")}
+    _check_tier_results(built_repo)
     cost = yaml.safe_load((built_repo / "reports/run_meta.yaml").read_text())["cost"]
     assert sorted(cost) == sorted(DETECTORS)  # SPEC §13: cost beside accuracy, per detector
     for detector, entry in cost.items():
@@ -45,6 +53,35 @@ def test_full_pipeline_writes_every_output(built_repo):
         assert entry["fit_s"] > 0, detector  # recorded by the fit stage
         assert entry["fitted_bytes"] == pickle.stat().st_size
         assert entry["step_us_p99"] >= entry["step_us_median"] > 0
+
+
+def _check_tier_results(repo) -> None:
+    """SPEC §15: every detector at every reachable tier of every fault, at the per-stream rule."""
+    from oodrl.impact import UNREACHABLE
+    from oodrl.tiers import read_tiers
+
+    document = yaml.safe_load((repo / "reports/tier_results.yaml").read_text())
+    assert document["protocol_version"] == 2 and document["params_hash"].startswith("sha256:")
+    reachable = {
+        (i, tier) for i in INJECTORS for tier in read_tiers(repo / f"data/impact/{i}.yaml", i)[0]
+    }
+    records = document["records"]
+    assert {(r["detector"], r["injector"], r["tier"]) for r in records} == {
+        (d, i, t) for d in DETECTORS for (i, t) in reachable
+    }
+    for record in records:
+        point = record["operating_point"]
+        assert point["alpha"] == 0.05 and point["n_clean"] == 3 and point["n_faulty"] == 3
+        detections = record["episodes"]["detection_rate@100"]
+        assert len(detections) == 3 and set(detections) <= {0.0, 1.0}
+        assert sum(detections) / 3 == pytest.approx(point["detection_rate"], abs=1e-6)
+    for fault, impact in document["impact"].items():
+        assert set(impact["tiers"]) == {"mild", "moderate", "severe"}, fault
+        for tier in impact["tiers"].values():
+            assert tier["severity"] == UNREACHABLE or 0 < tier["severity"] <= 1
+    assert set(document["minimum_detectable_impact"]) <= set(DETECTORS)
+    assert (repo / "reports/tiers/tables.md").read_text().startswith("# Impact tiers")
+    assert (repo / "reports/tiers/impact_curves.png").stat().st_size > 0
 
 
 def test_up_to_date_after_repro(repo):
@@ -57,13 +94,14 @@ def test_injector_param_reruns_only_that_injector(repo):
     before = lock_hashes(repo)
     edit_params(repo, lambda p: p["anomaly"]["injectors"]["observation_delay"].update(max_delay=4))
     status = run(repo, "dvc", "status", "--json", "dvc.yaml").stdout
-    assert sorted(json.loads(status)) == [
-        "check_params", "collect_ood@observation_delay", "collect_sweep@observation_delay",
-    ]  # fmt: skip
+    # The metrics stages stamp their results with the hash of every params section they read.
+    assert sorted(json.loads(status)) == sorted(
+        ["check_params", *injector_stages("observation_delay"), "metrics", "tier_metrics"]
+    )
     ran = repro(repo)
     assert ran == sorted([
-        "check_params", "collect_ood@observation_delay", "collect_sweep@observation_delay",
-        *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render",
+        "check_params", *injector_stages("observation_delay"),
+        *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render", "tier_metrics",
     ])  # fmt: skip
     after = lock_hashes(repo)
     assert after["data/ood/stuck_actuator.zarr"] == before["data/ood/stuck_actuator.zarr"]
@@ -74,7 +112,7 @@ def test_detector_param_reruns_only_that_detector(repo):
     edit_params(repo, lambda p: p["detectors"]["kde_density"].update(threshold_percentile=95.0))
     ran = repro(repo)
     assert ran == sorted([
-        "check_params", *detector_stages("kde_density"), "metrics", "render",
+        "check_params", *detector_stages("kde_density"), "metrics", "render", "tier_metrics",
     ])  # fmt: skip
 
 
@@ -84,7 +122,7 @@ def test_headline_severity_does_not_rescore_the_sweep(repo):
     assert ran == sorted([
         "check_params", *(f"collect_ood@{i}" for i in INJECTORS),
         *(detector_stage(d, "score", i) for d in DETECTORS for i in INJECTORS),
-        "metrics", "render",
+        "metrics", "render", "tier_metrics",
     ])  # fmt: skip
 
 
@@ -104,11 +142,11 @@ def _append_comment(repo, path: str) -> None:
 
 CODE_EDITS = {  # edited file -> the stages allowed to run (DVC skips those whose inputs held)
     "src/oodrl/detectors/kde.py": {
-        "check_params", *detector_stages("kde_density"), "metrics", "render",
+        "check_params", *detector_stages("kde_density"), "metrics", "render", "tier_metrics",
     },
     "src/oodrl/injectors/posthoc.py": {  # observation_delay is the tiny params' post-hoc one
-        "check_params", "collect_ood@observation_delay", "collect_sweep@observation_delay",
-        *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render",
+        "check_params", *injector_stages("observation_delay"),
+        *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render", "tier_metrics",
     },
     "src/oodrl/metrics/ranking.py": {"check_params", "metrics", "render"},
 }  # fmt: skip

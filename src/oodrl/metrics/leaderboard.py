@@ -37,10 +37,6 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-# The protocol stamp lives in its own module, so the stages that write results do not depend on
-# the leaderboard's code; oodrl.tiers still imports it from here.
-from oodrl.metrics.stamp import protocol_stamp  # noqa: F401
-
 
 class Cell(NamedTuple):
     """One (environment, policy, fault, tier)."""

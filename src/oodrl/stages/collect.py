@@ -1,4 +1,5 @@
-"""Collection stages: clean ID and evaluation sets, perturbed headline and sweep sets.
+"""Collection stages: clean ID, evaluation and calibration sets, perturbed headline and sweep
+sets (the tier sets: `oodrl.stages.impact`).
 
 What each set holds (seeds, split, anomalies) is the protocol's: `oodrl.protocol`.
 """
@@ -35,3 +36,7 @@ def collect_sweep(
     sets = protocol.perturbed_sets(params, injector_name, grid, policy_path, eval_path)
     write_sweep(out, dict(zip(grid, sets, strict=True)),
                 {"injector": injector_name, "mode": sets[0].attrs.get("mode")})  # fmt: skip
+
+
+def collect_calibration(params: Params, policy_path: Path, out: Path) -> None:
+    write_trajectories(out, protocol.calibration_set(params, policy_path))

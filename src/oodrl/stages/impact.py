@@ -8,7 +8,6 @@ from pathlib import Path
 
 from oodrl import yamlio
 from oodrl.config import Params
-from oodrl.core.injector import OnlineInjector
 from oodrl.errors import ConfigError
 from oodrl.fileio import atomic_write_text
 
@@ -16,40 +15,12 @@ from oodrl.fileio import atomic_write_text
 DEFAULT_GRID = tuple(round(0.1 * i, 1) for i in range(1, 11))
 
 
-def live_injectors(
-    params: Params, names: Sequence[str], id_path: Path | None = None
-) -> dict[str, OnlineInjector]:
-    """Each named fault as an online injector from its params block: a post-hoc observation
-    fault becomes its live counterpart (same parameters), whose `mean`/`scale` are the clean ID
-    set's statistics when `id_path` is given (else running statistics, see
-    `oodrl.injectors.live_observation`)."""
-    from oodrl.injectors import INJECTORS
-    from oodrl.injectors.live_observation import LIVE_COUNTERPARTS, reference_statistics
-
-    reference = None
-    if id_path is not None:
-        from oodrl.store import read_trajectories
-
-        reference = reference_statistics(read_trajectories(id_path, stage="collect_id").states)
-    injectors = {}
-    for name in names:
-        block = {k: v for k, v in params.anomaly.injectors.get(name, {}).items() if k != "severity"}
-        live = LIVE_COUNTERPARTS.get(name, name)
-        cls = INJECTORS.get(live)
-        if cls.mode != "online":
-            raise ConfigError(f"Injector '{name}' has no live version; impact needs online faults.")
-        if reference is not None and "scale" in cls().get_params():
-            block = {**reference, **block}
-        injectors[name] = cls.from_params(block)
-    return injectors
-
-
 def run_impact(
     params: Params,
     policy_path: Path,
     out: Path,
-    table: Path,
-    figure: Path,
+    table: Path | None,
+    figure: Path | None,
     *,
     id_path: Path | None = None,
     injectors: Sequence[str] | None = None,
@@ -61,7 +32,7 @@ def run_impact(
     """Calibrate the impact of `injectors` (default: benchmark.injectors) and write the
     document, its table and its figure; returns the document."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.impact import calibrate_impact, impact_table, plot_impact_curves
+    from oodrl.impact import calibrate_impact, impact_table, live_injectors, plot_impact_curves
     from oodrl.policies.load import load_policy
 
     if not grid or any(not 0 < s <= 1 for s in grid) or list(grid) != sorted(set(grid)):
@@ -84,6 +55,23 @@ def run_impact(
         workers=params.executor.resolved_workers,
     )
     atomic_write_text(out, yamlio.dump(document))
-    atomic_write_text(table, impact_table(document))
-    plot_impact_curves(document, figure)
+    if table is not None:
+        atomic_write_text(table, impact_table(document))
+    if figure is not None:
+        plot_impact_curves(document, figure)
     return document
+
+
+def collect_tiers(
+    params: Params, fault: str, policy_path: Path, impact_path: Path, id_path: Path, out: Path
+) -> None:
+    """Stage collect_tiers: the evaluation streams with `fault` live at each tier its impact
+    curve reaches (a store like the sweep's, one group per severity; its attributes map each
+    tier to its severity and list the unreachable ones)."""
+    from oodrl.store import write_sweep
+    from oodrl.tiers import read_tiers, tier_sets
+
+    tiers, unreachable = read_tiers(impact_path, fault)
+    sets = tier_sets(params, fault, tiers, policy_path, id_path)
+    attrs = {"injector": fault, "mode": "online", "tiers": tiers, "unreachable": unreachable}
+    write_sweep(out, dict(zip(tiers.values(), sets, strict=True)), attrs)

@@ -22,10 +22,13 @@ def run_metrics(
     tables_path: Path,
 ) -> None:
     from oodrl.metrics.results import compute_results
+    from oodrl.metrics.stamp import protocol_stamp
     from oodrl.report.tables import metrics_json, render_tables
 
     computed = compute_results(params, scores_dir)
-    results, sweep = computed.results_document(), computed.sweep_document()
+    stamp = protocol_stamp(params)  # SPEC §15: the leaderboard refuses to mix protocols
+    results = {**stamp, **computed.results_document()}
+    sweep = {**stamp, **computed.sweep_document()}
     atomic_write_text(results_path, yamlio.dump(results))
     atomic_write_text(sweep_path, yamlio.dump(sweep))
     atomic_write_text(

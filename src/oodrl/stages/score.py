@@ -1,6 +1,7 @@
 """Scoring stages: one fitted detector on the clean evaluation set, on one injector's headline
-set, or on its sweep (separate stages, so a changed headline severity does not re-score the
-sweep). What the score stores hold: `oodrl.scoring`."""
+set, on its sweep (separate stages, so a changed headline severity does not re-score the
+sweep), on the clean calibration streams, or on a fault's tier streams. What the score stores
+hold: `oodrl.scoring`."""
 
 from __future__ import annotations
 
@@ -8,7 +9,13 @@ from pathlib import Path
 
 from oodrl import scoring
 from oodrl.layout import detector_stage
-from oodrl.store import load_detector, read_sweep, read_trajectories, write_scores
+from oodrl.store import (
+    load_detector,
+    read_sweep,
+    read_tier_sets,
+    read_trajectories,
+    write_scores,
+)
 
 
 def _fitted(detector_path: Path, name: str):
@@ -30,3 +37,14 @@ def score_sweep(name: str, injector: str, detector_path: Path, sweep_path: Path,
     sweep = read_sweep(sweep_path, stage=f"collect_sweep@{injector}")
     detector = _fitted(detector_path, name)
     write_scores(out, *scoring.sweep_scores(detector, name, injector, sweep))
+
+
+def score_calibration(name: str, detector_path: Path, calibration_path: Path, out: Path):
+    calibration = read_trajectories(calibration_path, stage="collect_calibration")
+    write_scores(out, *scoring.clean_scores(_fitted(detector_path, name), name, calibration))
+
+
+def score_tiers(name: str, injector: str, detector_path: Path, tiers_path: Path, out: Path):
+    sets, attrs = read_tier_sets(tiers_path, stage=f"collect_tiers@{injector}")
+    detector = _fitted(detector_path, name)
+    write_scores(out, *scoring.tier_scores(detector, name, injector, sets, attrs))

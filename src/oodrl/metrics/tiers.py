@@ -1,0 +1,205 @@
+"""Detection at impact tiers and a per-stream false-alarm budget (SPEC §15): the tier_metrics
+stage's results, `reports/tier_results.yaml` (the stages that feed it: `oodrl.tiers`).
+
+Per (detector, fault, tier) a record holds every metric of SPEC §6 against the matched clean
+evaluation streams (per-episode matched AUROC kept for the leaderboard), and the operating
+point of the per-stream conformal rule (`oodrl.metrics.operating`): its threshold is computed
+from the detector's scores on the calibration streams at `tiers.alpha`; `detection_rate@K` per
+stream (kept per episode too), the delays, the detection-rate curve, and the clean false-alarm
+rate achieved on the evaluation streams. Per detector × fault, the minimum detectable impact:
+the smallest return loss at which matched AUROC, and `detection_rate@K`, reach 0.9 on the tiers
+(the metric linear between the tiers' severities, the loss read on the monotone impact curve).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from oodrl.config import Params
+from oodrl.layout import CLEAN_GROUP, detector_stage, score_store
+from oodrl.store import read_scores, severity_key
+from oodrl.tiers import calibration_score_store, impact_path, read_impact, tier_score_store
+
+#: The level matched AUROC and detection_rate@K must reach for the minimum detectable impact.
+MDI_TARGET = 0.9
+
+
+def detection_metric(k: int) -> str:
+    """The per-stream detection metric's name: `detection_rate@100`."""
+    return f"detection_rate@{k}"
+
+
+def _per_stream_detections(faulty: np.ndarray, threshold: float, onset: int, k: int, latency: int):
+    """1.0 per faulty stream whose first alarm is raised in [t*, t* + K] within the stream."""
+    from oodrl.metrics.operating import first_raise
+
+    raised = first_raise(faulty >= threshold, latency)
+    detected = (raised >= onset) & (raised <= onset + k) & (raised < faulty.shape[1])
+    return detected.astype(np.float64)
+
+
+def _rounded(values) -> list[float]:
+    return [round(float(v), 6) + 0.0 for v in values]
+
+
+def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detector: str):
+    """One detector's records at every fault's reachable tiers."""
+    from oodrl.metrics.aggregate import episode_metrics, summarise
+    from oodrl.metrics.operating import conformal_threshold
+    from oodrl.metrics.operating import operating_point as operating
+
+    tiers = params.tiers
+    latency = params.detector(detector).latency
+    clean_groups, _ = read_scores(
+        score_store(scores_dir, detector), stage=detector_stage(detector, "score_clean")
+    )
+    clean = clean_groups[CLEAN_GROUP]["scores"]
+    calibration_groups, _ = read_scores(
+        calibration_score_store(scores_dir, detector),
+        stage=detector_stage(detector, "score_calibration"),
+    )
+    # The per-stream rule: the conformal quantile of the calibration streams' maxima.
+    maxima = calibration_groups[CLEAN_GROUP]["scores"].max(axis=1)
+    threshold = conformal_threshold(maxima, tiers.alpha)
+    records = []
+    for fault in params.benchmark.injectors:
+        groups, attrs = read_scores(
+            tier_score_store(scores_dir, detector, fault),
+            stage=detector_stage(detector, "score_tiers", fault),
+        )
+        for tier, severity in attrs["tiers"].items():
+            group = groups[severity_key(severity)]
+            onset, offset = attrs["spec"]["onset"], attrs["spec"]["offset"]
+            per_episode = episode_metrics(
+                group["scores"], clean, group["labels"], threshold, onset, offset,
+                params.metrics, detector, latency,
+            )  # fmt: skip
+            detected = _per_stream_detections(group["scores"], threshold, onset, tiers.k, latency)
+            point = operating(
+                group["scores"], clean, threshold, onset,
+                alpha=tiers.alpha, k=tiers.k, latency=latency, confidence=params.metrics.ci,
+            )  # fmt: skip
+            records.append({
+                "kind": "anomaly",
+                "detector": detector,
+                "injector": fault,
+                "tier": tier,
+                "severity": float(severity),
+                "mode": "online",
+                "latency": latency,
+                "metrics": summarise(per_episode, params.metrics, seed=params.seed),
+                "episodes": {
+                    "matched_auroc": _rounded(per_episode["matched_auroc"]),
+                    detection_metric(tiers.k): _rounded(detected),
+                },
+                "operating_point": point.as_dict(),
+            })  # fmt: skip
+    return records
+
+
+def _minimum_detectable_impact(
+    records: list[dict], impacts: Mapping[str, dict], k: int
+) -> dict[str, dict[str, dict[str, float | str]]]:
+    """detector -> fault -> {criterion: the return loss 1 − R̃ at which it reaches 0.9}."""
+    from oodrl.impact import BEYOND_RANGE, minimum_detectable_impact
+
+    by_cell: dict[tuple[str, str], list[dict]] = {}
+    for record in records:
+        by_cell.setdefault((record["detector"], record["injector"]), []).append(record)
+    table: dict[str, dict[str, dict[str, float | str]]] = {}
+    for (detector, fault), cell in sorted(by_cell.items()):
+        curve = impacts[fault]["fault"]["curve"]
+        xs = [0.0, *(float(p["severity"]) for p in curve)]
+        ys = [1.0, *(float(p["monotone"]) for p in curve)]
+        cell = sorted(cell, key=lambda r: r["severity"])
+        severities = [r["severity"] for r in cell]
+        criteria = {
+            "matched_auroc": [r["metrics"]["matched_auroc"]["mean"] for r in cell],
+            detection_metric(k): [r["operating_point"]["detection_rate"] for r in cell],
+        }
+        table.setdefault(detector, {})[fault] = {
+            name: minimum_detectable_impact(xs, ys, severities, values, MDI_TARGET)
+            if severities
+            else BEYOND_RANGE
+            for name, values in criteria.items()
+        }
+    return table
+
+
+def compute_tier_results(params: Params, scores_dir: Path, impact_dir: Path) -> dict[str, Any]:
+    """tier_results.yaml's content (sorted records, the impact tiers, the stamp)."""
+    from oodrl.metrics.stamp import protocol_stamp
+    from oodrl.parallel import ordered_map
+
+    impacts = {f: read_impact(impact_path(impact_dir, f), f) for f in params.benchmark.injectors}
+    detectors = params.benchmark.detectors
+    jobs = [(params, scores_dir, impact_dir, d) for d in detectors]
+    parts = ordered_map(_detector_records, jobs, params.executor.resolved_workers)
+    records = sorted(
+        (r for part in parts for r in part),
+        key=lambda r: (r["detector"], r["injector"], r["severity"]),
+    )
+    return {
+        **protocol_stamp(params),
+        "alpha": params.tiers.alpha,
+        "k": params.tiers.k,
+        "records": records,
+        "impact": {
+            fault: {
+                "clean_return": doc["clean_return"],
+                "random_return": doc["random_return"],
+                "tiers": doc["fault"]["tiers"],
+            }
+            for fault, doc in impacts.items()
+        },
+        "minimum_detectable_impact": _minimum_detectable_impact(records, impacts, params.tiers.k),
+    }
+
+
+def impact_document(params: Params, impact_dir: Path) -> dict[str, Any]:
+    """Every fault's impact record in one document, as `oodrl.impact.impact_table` and
+    `plot_impact_curves` take it."""
+    docs = {f: read_impact(impact_path(impact_dir, f), f) for f in params.benchmark.injectors}
+    first = next(iter(docs.values()))
+    shared = {k: v for k, v in first.items() if k not in ("faults", "fault")}
+    return {**shared, "faults": {f: doc["fault"] for f, doc in docs.items()}}
+
+
+def tier_tables(document: Mapping[str, Any], impact: Mapping[str, Any]) -> str:
+    """Markdown: the tiers' severities per fault, then per tier the detection rate at α
+    (with its CI), the median delay and the matched AUROC of every (detector, fault)."""
+    from oodrl.impact import impact_table
+
+    k, alpha = document["k"], document["alpha"]
+    lines = ["# Impact tiers and detection at a false-alarm budget", "",
+             "## Tier severities (normalised return R̃ falls to 0.95 / 0.90 / 0.75)", "",
+             impact_table(impact).rstrip("\n"), ""]  # fmt: skip
+    by_tier: dict[str, list[dict]] = {}
+    for record in document["records"]:
+        by_tier.setdefault(record["tier"], []).append(record)
+    for tier in ("mild", "moderate", "severe"):
+        rows = by_tier.get(tier, [])
+        if not rows:
+            continue
+        lines += [
+            f"## {tier}: detection_rate@{k} at α = {alpha:g} [95% CI], median delay, matched AUROC",
+            "",
+            "| detector | fault | σ | detection rate | median delay | matched AUROC |",
+            "|---|---|---:|---:|---:|---:|",
+        ]
+        for r in rows:
+            point = r["operating_point"]
+            low, high = point["detection_rate_ci"]
+            delay = point["delay"]["median"]
+            lines.append(
+                f"| {r['detector']} | {r['injector']} | {r['severity']:.3f} | "
+                f"{point['detection_rate']:.2f} [{low:.2f}, {high:.2f}] | "
+                f"{'—' if delay is None else f'{delay:g}'} | "
+                f"{r['metrics']['matched_auroc']['mean']:.3f} |"
+            )
+        lines.append("")
+    return "\n".join(lines)

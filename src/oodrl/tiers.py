@@ -1,0 +1,105 @@
+"""Impact tiers in the pipelines (SPEC §15): where each pipeline keeps them, the tiers an
+impact document gives, and the evaluation streams collected at them.
+
+The stages (one pipeline, `oodrl.pipeline`):
+- `impact@<fault>` writes `data/impact/<fault>.yaml` (`oodrl.impact`): the fault's impact curve
+  and the severity of each tier, or "unreachable";
+- `collect_tiers@<fault>` collects the evaluation streams with the fault live from the onset at
+  each reachable tier (`tier_sets`): `data/tiers/<fault>.zarr`;
+- `collect_calibration` collects `tiers.n_calibration` held-out clean streams;
+- each detector's `score_calibration` and `score_tiers@<fault>` score them;
+- `tier_metrics` writes `reports/tier_results.yaml` and `reports/tiers/`
+  (`oodrl.metrics.tiers`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+from oodrl import yamlio
+from oodrl.config import Params
+from oodrl.core.trajectory import TrajectorySet
+from oodrl.errors import StoreError
+from oodrl.store import rerun_hint
+
+#: Where a pipeline keeps each fault's impact document, tier streams and their scores.
+IMPACT_DIR = "data/impact"
+TIERS_DIR = "data/tiers"
+CALIBRATION_STORE = "data/calibration.zarr"
+
+
+def impact_path(impact_dir: Path, fault: str) -> Path:
+    return Path(impact_dir) / f"{fault}.yaml"
+
+
+def tier_score_store(scores_dir: Path, detector: str, fault: str) -> Path:
+    """`detector`'s scores of one fault's tier streams (one group per tier severity)."""
+    return Path(scores_dir) / detector / "tiers" / f"{fault}.zarr"
+
+
+def calibration_score_store(scores_dir: Path, detector: str) -> Path:
+    return Path(scores_dir) / detector / "calibration.zarr"
+
+
+def read_impact(path: Path, fault: str) -> dict[str, Any]:
+    """One fault's record of an impact document (`oodrl impact --injector <fault>`)."""
+    if not Path(path).is_file():
+        raise StoreError(f"{path}: missing; {rerun_hint(f'impact@{fault}')}.")
+    document = yamlio.load(Path(path).read_text())
+    faults = document.get("faults") or {}
+    if fault not in faults:
+        raise StoreError(
+            f"{path}: holds no impact curve of {fault!r}; {rerun_hint(f'impact@{fault}')}."
+        )
+    return {**document, "fault": faults[fault]}
+
+
+def read_tiers(path: Path, fault: str) -> tuple[dict[str, float], list[str]]:
+    """The reachable tiers' severities (tier -> σ, mild first) and the unreachable tiers."""
+    from oodrl.impact import UNREACHABLE
+
+    tiers = read_impact(path, fault)["fault"]["tiers"]
+    reachable = {n: float(t["severity"]) for n, t in tiers.items() if t["severity"] != UNREACHABLE}
+    unreachable = [n for n, t in tiers.items() if t["severity"] == UNREACHABLE]
+    return reachable, unreachable
+
+
+def tier_sets(
+    params: Params,
+    injector_name: str,
+    tiers: dict[str, float],
+    policy_path: Path,
+    id_path: Path,
+) -> list[TrajectorySet]:
+    """The evaluation streams with one fault live from the onset at each tier's severity
+    (`tiers`: tier name -> severity, the reachable tiers of its impact curve).
+
+    Observation faults run as their live counterparts (the policy acts on the faulty sensor),
+    with the same parameters and the clean ID set's reference statistics, as in the impact
+    calibration that set the severities (`oodrl.impact.live_injectors`). The streams'
+    seeds are the evaluation seeds, so each is the matched twin of a clean evaluation stream.
+    """
+    from oodrl.impact import live_injectors
+    from oodrl.injectors.apply import collect_online_sets
+    from oodrl.progress import progress_bar
+    from oodrl.protocol import _adapter, _policy, _set_attrs, eval_seeds
+
+    injector = live_injectors(params, [injector_name], id_path)[injector_name]
+    onset, offset = params.env.resolved_onset, params.anomaly.offset
+    specs = [injector.spec(severity, onset, offset) for severity in tiers.values()]
+    adapter, policy = _adapter(params), _policy(params, policy_path)
+    seeds = eval_seeds(params)
+    label = f"{injector_name} ({len(specs)} tiers)"
+    with progress_bar(len(seeds) * len(specs), label, params.executor.progress) as bar:
+        sets = collect_online_sets(
+            injector, adapter, policy, seeds, params.env.T, specs,
+            seed=params.seed, policy_seed=params.seed,
+            workers=params.executor.resolved_workers, progress=bar.update,
+        )  # fmt: skip
+    base = _set_attrs(params, adapter, policy)
+    return [
+        dataclasses.replace(t, attrs={**base, **t.attrs, "tier": tier})
+        for tier, t in zip(tiers, sets, strict=True)
+    ]

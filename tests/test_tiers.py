@@ -1,0 +1,48 @@
+"""The tier machinery of the suite (SPEC §15; the stages themselves: tests/pipeline)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from oodrl import yamlio
+from oodrl.errors import StoreError
+from oodrl.metrics.tiers import _per_stream_detections, detection_metric
+from oodrl.tiers import read_tiers
+
+
+def _impact_document(tiers: dict) -> dict:
+    return {"faults": {"stuck_actuator": {"tiers": tiers, "curve": []}}, "clean_return": 1.0}
+
+
+def test_read_tiers_keeps_the_reachable_ones_and_names_the_rest(tmp_path):
+    path = tmp_path / "stuck_actuator.yaml"
+    tiers = {
+        "mild": {"level": 0.95, "severity": 0.2},
+        "moderate": {"level": 0.9, "severity": 0.35},
+        "severe": {"level": 0.75, "severity": "unreachable"},
+    }
+    path.write_text(yamlio.dump(_impact_document(tiers)))
+    assert read_tiers(path, "stuck_actuator") == ({"mild": 0.2, "moderate": 0.35}, ["severe"])
+
+
+def test_read_tiers_names_the_stage_that_rebuilds_a_missing_or_foreign_document(tmp_path):
+    with pytest.raises(StoreError, match=r"missing; .*impact@stuck_actuator"):
+        read_tiers(tmp_path / "absent.yaml", "stuck_actuator")
+    path = tmp_path / "other.yaml"
+    path.write_text(yamlio.dump(_impact_document({})))
+    with pytest.raises(StoreError, match="no impact curve of 'gradual_drift'"):
+        read_tiers(path, "gradual_drift")
+
+
+def test_per_stream_detection_counts_only_first_alarms_within_k_of_the_onset():
+    # Hand-worked: T = 10, onset 4, K = 3, threshold 1, latency 1 (an alarm at t is raised at
+    # t + 1). Stream 0 first alarms at t = 3, raised at 4: detected (delay 0). Stream 1 first
+    # alarms at t = 1, raised at 2 < onset: a false alarm, not a detection, whatever follows.
+    # Stream 2 first alarms at t = 7, raised at 8 > 4 + 3: too late. Stream 3 never alarms.
+    # Stream 4 first alarms at t = 6, raised at 7 = onset + K: detected.
+    scores = np.zeros((5, 10))
+    scores[0, 3] = scores[1, [1, 5]] = scores[2, 7] = scores[4, 6] = 2.0
+    detected = _per_stream_detections(scores, threshold=1.0, onset=4, k=3, latency=1)
+    assert detected.tolist() == [1.0, 0.0, 0.0, 0.0, 1.0]
+    assert detection_metric(3) == "detection_rate@3"
