@@ -95,8 +95,22 @@ def build_pipeline(
             _run(project, env, "dvc", "cache", "dir", "--local", shared_cache)
         done = _run(project, env, "dvc", "repro", *(["--pull"] if remote else []))
         if remote:
-            _run(project, env, "dvc", "push", "-q", "--run-cache")
+            _run(project, env, "dvc", "push", "-q")
+            _run(project, env, sys.executable, "-c", PUSH_RUN_CACHE)
     return time.perf_counter() - start, ran_stages(done.stdout)
+
+
+#: `dvc push --run-cache`, plus what it leaves behind: the outputs of each run-cache entry that
+#: the workspace push skips (`cache: false` ones, such as metrics.json), without which the head
+#: could not restore those stages. Runs in the task's clone, on the DVC the node has installed.
+PUSH_RUN_CACHE = """
+from dvc.repo import Repo
+
+with Repo(".") as repo:
+    entries = repo.stage_cache.push(None)
+    for objects in repo.stage_cache.get_used_objs(entries).values():
+        repo.cloud.push(objects)
+"""
 
 
 def ran_stages(dvc_output: str) -> tuple[str, ...]:

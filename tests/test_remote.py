@@ -1,0 +1,110 @@
+"""A shared DVC remote (SPEC §16): a fresh clone gets every result by `dvc pull`, and a second
+machine's `dvc repro` restores stages from the run-cache instead of recomputing them. Against a
+directory remote and a real S3-API server on loopback (moto's server, as DVC's S3 plugin is
+tested); a remote that refuses stops `oodrl suite run` in one line, before anything runs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+from suite_repo import checkout, code_env, head_commit, locks, two_environment_suite
+from typer.testing import CliRunner
+
+from oodrl.cli import app
+from oodrl.suite_run import ran_stages
+from oodrl.testing.pipeline import repro, run
+
+pytestmark = pytest.mark.slow
+
+#: One environment's DVC project: every project of the suite shares a remote the same way.
+PROJECT = "pipeline/cartpole"
+BUCKET = "oodrl-lab"
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory, repo_root) -> tuple[Path, list[str]]:
+    """The CartPole project built and its locks committed: HEAD has current locks, HEAD~1
+    the stale ones of a commit nobody has built yet."""
+    repo = tmp_path_factory.mktemp("built") / "repo"
+    two_environment_suite(repo_root, head_commit(repo_root), repo)
+    ran = repro(repo / PROJECT, env=code_env(repo))
+    run(repo, "git", "add", "-A")
+    run(repo, "git", "commit", "-q", "-m", "CartPole built")
+    return repo, ran
+
+
+@pytest.fixture
+def s3_server(monkeypatch):
+    """moto's S3 server on a free loopback port; the endpoint URL."""
+    from moto.server import ThreadedMotoServer
+
+    for name, value in [("AWS_ACCESS_KEY_ID", "testing"), ("AWS_SECRET_ACCESS_KEY", "testing"),
+                        ("AWS_DEFAULT_REGION", "us-east-1")]:  # fmt: skip
+        monkeypatch.setenv(name, value)
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=0, verbose=False)
+    server.start()
+    host, port = server.get_host_and_port()
+    yield f"http://{host}:{port}"
+    server.stop()
+
+
+@pytest.fixture(params=["directory", "s3"])
+def remote(request, tmp_path) -> dict[str, str]:
+    """The remote's `dvc remote add` URL and `dvc remote modify` options."""
+    if request.param == "directory":
+        return {"url": str(tmp_path / "shared" / "oodrl")}
+    import boto3
+
+    endpoint = request.getfixturevalue("s3_server")
+    boto3.client("s3", endpoint_url=endpoint).create_bucket(Bucket=BUCKET)
+    return {"url": f"s3://{BUCKET}/oodrl", "endpointurl": endpoint}
+
+
+def configure(project: Path, remote: dict[str, str]) -> None:
+    """As the README says: the remote in the project's git-ignored config.local."""
+    run(project, "dvc", "remote", "add", "--local", "-f", "-d", "lab", remote["url"])
+    for option, value in remote.items():
+        if option != "url":
+            run(project, "dvc", "remote", "modify", "--local", "lab", option, value)
+
+
+def test_a_fresh_clone_pulls_and_a_second_machine_restores(built, remote, tmp_path):
+    repo, built_ran = built
+    configure(repo / PROJECT, remote)
+    run(repo / PROJECT, "dvc", "push", "--run-cache")
+
+    clone = tmp_path / "clone"
+    run(tmp_path, "git", "clone", "-q", str(repo), str(clone))
+    configure(clone / PROJECT, remote)
+    run(clone / PROJECT, "dvc", "pull")
+    assert run(clone / PROJECT, "dvc", "status", "--quiet", check=False).returncode == 0
+    assert repro(clone / PROJECT, env=code_env(clone)) == []
+    results = "reports/results.yaml"
+    assert (clone / PROJECT / results).read_bytes() == (repo / PROJECT / results).read_bytes()
+
+    # Another machine on the commit before, whose locks are stale: every stage's run is found
+    # in the remote's run-cache and restored, and the locks come out as the build wrote them.
+    # Run again: the stages DVC cannot cache (persistent outputs), and metrics, whose
+    # `cache: false` metrics.json `dvc push --run-cache` does not carry (oodrl suite run does).
+    second = tmp_path / "second"
+    run(tmp_path, "git", "clone", "-q", str(repo), str(second))
+    run(second, "git", "-c", "advice.detachedHead=false", "checkout", "-q", "HEAD~1")
+    configure(second / PROJECT, remote)
+    done = run(second / PROJECT, "dvc", "repro", "--pull", env=code_env(second))
+    assert set(ran_stages(done.stdout)) <= {"check_params", "train_policy", "metrics"}
+    assert len(built_ran) > 10 and done.stdout.count("is cached - skipping run") >= 10
+    project_locks = {k: v for k, v in locks(repo).items() if k.startswith(PROJECT)}
+    assert {k: v for k, v in locks(second).items() if k.startswith(PROJECT)} == project_locks
+
+
+def test_suite_run_stops_in_one_line_when_the_remote_refuses(repo_root, s3_server, tmp_path):
+    repo = two_environment_suite(repo_root, head_commit(repo_root), tmp_path / "repo")
+    configure(repo, {"url": "s3://no-such-bucket/oodrl", "endpointurl": s3_server})
+    before = checkout(repo)
+    result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
+    assert result.exit_code == 1
+    assert result.output.count("\n") == 1
+    assert "DVC remote 'lab' (s3://no-such-bucket/oodrl) refuses a write" in result.output
+    assert "bucket does not exist" in result.output
+    assert checkout(repo) == before
