@@ -42,6 +42,7 @@ def tiny_params(repo_root: Path) -> dict:
     params["data"].update(n_id=4, n_ood=3)
     params["anomaly"]["sweep"] = [0.5]
     params["metrics"]["n_boot"] = 20
+    params["tiers"].update(grid=[1.0], episodes=2, n_calibration=19)
     params["executor"]["workers"] = 1
     return params
 
