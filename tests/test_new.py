@@ -200,3 +200,27 @@ def test_train_on_a_mujoco_environment_supports_every_fault(root):
     assert (made.directory / "models" / "sb3_ppo.zip").is_file()
     assert (made.directory / "dvc.yaml").is_file()
     assert (made.directory / ".dvc" / "config").is_file()
+
+
+@pytest.mark.slow
+def test_an_rl_zoo_folder_becomes_a_pipeline_of_its_own_environment(root, tmp_path):
+    """logs/ppo/<env>_1/ as rl-zoo3 writes it; the folder names the environment it ran on."""
+    from collections import OrderedDict
+
+    env_id = "MountainCarContinuous-v0"
+    run_dir = tmp_path / "logs" / "ppo" / f"{env_id}_1"
+    (run_dir / env_id).mkdir(parents=True)
+    train_agent(run_dir / f"{env_id}.zip", env_id)
+    (run_dir / "vecnormalize.pkl").rename(run_dir / env_id / "vecnormalize.pkl")
+    (run_dir / env_id / "config.yml").write_text(yaml.dump(OrderedDict(normalize=True)))
+    wrong = CliRunner().invoke(
+        app, ["new", "x", "--env", "Pendulum-v1", "--policy", str(run_dir), "--root", str(root)]
+    )
+    assert wrong.exit_code == 2 and f"an RL Zoo run on {env_id}" in wrong.output
+    made = new_pipeline(root, "zoo", env_id, policy=str(run_dir), T=30, episodes=1)
+    train = read_params_data(made.directory / "params.yaml")["policy"]["train"]
+    assert (train["source"], train["file"]) == ("RL Zoo folder", f"{env_id}.zip")
+    assert (
+        "observation_normalization"
+        in json.loads((made.directory / "models" / "policy.json").read_text())["architecture"]
+    )
