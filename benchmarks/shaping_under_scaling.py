@@ -1,10 +1,13 @@
-"""Under dynamics_scaling on LunarLander: how much of an episode's recorded return comes from the
-writes' uncharged potential changes (SPEC §15 choices, issue 21 item 8).
+"""Under dynamics_scaling on LunarLander: the recorded return, and the share of it that the
+fault's writes move through LunarLander's shaping potential Φ (SPEC §15 choices, issue 21 item 8).
 
     python benchmarks/shaping_under_scaling.py
 
-reward_t = Φ(u_t) − Φ(w_{t−1}) (the adapter resets the shaping baseline to the written state), so
-Σ rewards misses Σ_t Φ(w_t) − Φ(u_t). Committed policy, the impact seeds 500000.., 8 episodes.
+The adapter keeps the simulator's shaping baseline when it writes a state, so each write's
+potential change Φ(w_t) − Φ(u_t) is charged to the next step's reward and the recorded return
+is the episode's true one. (Before the fix the baseline was reset to Φ(w_t): the writes were
+charged to no step and the recorded return at σ = 1 was 490 against −53 true.) Committed
+policy, the impact seeds 500000.., 8 episodes.
 """
 
 from pathlib import Path
@@ -54,8 +57,8 @@ for sev in (0.5, 1.0):
     returns = first_episode_returns(t)
     missed = np.array([f.missed[0] if f.missed else f.episode_missed for f in faults])
     print(
-        f"σ={sev}: recorded return mean {returns.mean():.1f}; writes' uncharged potential change "
-        f"mean {missed.mean():.1f}; corrected return mean {(returns + missed).mean():.1f}"
+        f"σ={sev}: recorded return mean {returns.mean():.1f}, of which the writes' potential "
+        f"changes {missed.mean():.1f}"
     )
 clean = collect(a, p, seeds, 1000)
 print(f"clean return mean {first_episode_returns(clean).mean():.1f}")

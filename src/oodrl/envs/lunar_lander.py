@@ -78,7 +78,10 @@ class LunarLanderHandle(SimulatorHandle):
     def write_state(self, state: np.ndarray) -> np.ndarray:
         """Move the lander (and its legs rigidly with it) to the given body coordinates.
 
-        The reward shaping baseline is recomputed so the next reward describes the written state.
+        The simulator's reward-shaping baseline is kept: the next step's reward charges the
+        write's potential change with the step's own, so an episode's shaping telescopes to its
+        true total under a dynamics fault (resetting the baseline to the written state charged
+        no step with it: +490 recorded against −53 true at σ = 1 of dynamics_scaling).
         """
         env = self._env
         s = np.asarray(state, dtype=np.float64)
@@ -105,10 +108,7 @@ class LunarLanderHandle(SimulatorHandle):
         lander.angularVelocity = new_omega
         lander.awake = True
 
-        observation = self._observation()
-        if env.prev_shaping is not None:
-            env.prev_shaping = _shaping(observation)
-        return observation
+        return self._observation()
 
 
 def _shaping(s: np.ndarray) -> float:
