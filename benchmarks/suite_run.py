@@ -1,0 +1,145 @@
+"""`oodrl suite run` against a serial build of the suite (SPEC §16), in one run.
+
+    python benchmarks/suite_run.py [--pipelines . pipeline/cartpole …] [--params ci/params.yaml]
+                                   [--detectors D …] [--injectors I …] [--workers 2]
+                                   [--ray-nodes 2] [--json OUT]
+
+Three fresh copies of the project's HEAD with the same params (default: ci/params.yaml, the tiny
+CI protocol; `--params params.yaml` for the full one; --detectors/--injectors cut the benchmark):
+1. serial: `dvc repro` of each pipeline's DVC project in turn, then the suite's leaderboard;
+2. `oodrl suite run --workers N`: local processes, no remote (the clones use the head's cache);
+3. the same on a local Ray cluster: a head with no CPUs, N one-CPU nodes, a directory remote.
+2 and 3 must leave the serial run's dvc.lock files byte for byte. Then the makespan on 8, 32 and
+128 nodes, simulated from the serial per-pipeline times: list scheduling, longest first, plus
+what the head does after the tasks (restore every stage, run the leaderboard), as measured in 2;
+the critical path is the longest pipeline plus the leaderboard.
+"""
+
+from __future__ import annotations
+
+import argparse
+import heapq
+import json
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+from oodrl.config import EXTENDS_KEY, merge_params
+from oodrl.suite_run import run_suite
+from oodrl.testing.pipeline import run
+from oodrl.testing.suite import SUITE, head_commit, locks, serial_build, suite_copy
+
+ROOT = Path(__file__).resolve().parents[1]
+SIMULATED_NODES = (8, 32, 128)
+
+
+def list_schedule(seconds: list[float], nodes: int) -> float:
+    """When the last of the jobs ends, each started longest first on the node free earliest."""
+    free_at = [0.0] * nodes
+    for job in sorted(seconds, reverse=True):
+        heapq.heapreplace(free_at, free_at[0] + job)
+    return max(free_at)
+
+
+def timed_suite_run(repo: Path, **how) -> tuple[float, object]:
+    start = time.perf_counter()
+    result = run_suite(repo, echo=lambda line: print(f"  {line}", flush=True), **how)
+    return time.perf_counter() - start, result
+
+
+def on_local_ray_cluster(repo: Path, nodes: int, remote: Path) -> tuple[float, object]:
+    from ray.cluster_utils import Cluster
+
+    run(repo, "dvc", "remote", "add", "--local", "-d", "bench", str(remote))
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0})
+    try:
+        for _ in range(nodes):
+            cluster.add_node(num_cpus=1)
+        cluster.wait_for_nodes()
+        return timed_suite_run(repo, ray_address=cluster.address)
+    finally:
+        cluster.shutdown()
+
+
+def main() -> None:
+    from oodrl.pipeline import pipeline_dirs
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    every = [d.relative_to(ROOT).as_posix() or "." for d in pipeline_dirs(ROOT)]
+    parser.add_argument("--pipelines", nargs="+", default=every, help="default: the suite")
+    parser.add_argument("--params", type=Path, default=ROOT / "ci" / "params.yaml")
+    parser.add_argument("--detectors", nargs="+", help="benchmark.detectors (default: params')")
+    parser.add_argument("--injectors", nargs="+", help="benchmark.injectors (default: params')")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--ray-nodes", type=int, default=2, help="0: no Ray run")
+    parser.add_argument("--json", type=Path, help="also write the figures here")
+    args = parser.parse_args()
+
+    overrides = yaml.safe_load(args.params.read_text())
+    overrides.pop(EXTENDS_KEY, None)  # merged onto the copied commit's own params.yaml
+
+    def edit(shared: dict) -> None:
+        merged = merge_params(shared, overrides)
+        shared.clear()
+        shared.update(merged)
+        for key in ("detectors", "injectors"):
+            if getattr(args, key):
+                shared["benchmark"][key] = getattr(args, key)
+
+    commit = head_commit(ROOT)
+    figures: dict = {"commit": commit, "params": str(args.params), "pipelines": args.pipelines}
+    with tempfile.TemporaryDirectory() as tmp:
+        copies = {
+            name: suite_copy(ROOT, commit, Path(tmp) / name, args.pipelines, edit)
+            for name in ("serial", "workers", "ray")[: 3 if args.ray_nodes else 2]
+        }
+        print("serial:", flush=True)
+        serial = serial_build(copies["serial"], args.pipelines)
+        for project, (seconds, ran) in serial.items():
+            print(f"  {project}: {seconds:.1f} s ({len(ran)} stages)", flush=True)
+        serial_s = sum(seconds for seconds, _ in serial.values())
+        reference = locks(copies["serial"])
+        print(f"serial: {serial_s:.1f} s", flush=True)
+
+        print(f"--workers {args.workers}:", flush=True)
+        workers_s, workers = timed_suite_run(copies["workers"], workers=args.workers)
+        assert locks(copies["workers"]) == reference, "--workers: locks differ from serial"
+        head_s = workers.head_seconds
+        figures.update(
+            serial_s=serial_s,
+            workers=args.workers,
+            workers_s=workers_s,
+            head_after_tasks_s=head_s,  # restore every project, run the leaderboard
+            per_pipeline_serial_s={p: s for p, (s, _) in serial.items() if p != SUITE},
+            per_pipeline_task_s={t.pipeline: t.seconds for t in workers.pipelines},
+        )
+        if args.ray_nodes:
+            print(f"Ray, {args.ray_nodes} one-CPU nodes:", flush=True)
+            ray_s, ray = on_local_ray_cluster(copies["ray"], args.ray_nodes, Path(tmp) / "remote")
+            assert locks(copies["ray"]) == reference, "Ray: locks differ from serial"
+            figures.update(ray_nodes=args.ray_nodes, ray_s=ray_s, ray_head_s=ray.head_seconds,
+                           ray_nodes_used=len({t.node for t in ray.pipelines}))  # fmt: skip
+
+    times = [s for p, (s, _) in serial.items() if p != SUITE]
+    leaderboard_s = serial[SUITE][0]
+    critical = max(times) + leaderboard_s
+    simulated = {n: list_schedule(times, n) + head_s for n in SIMULATED_NODES}
+    figures.update(leaderboard_s=leaderboard_s, critical_path_s=critical,
+                   simulated_makespan_s=simulated)  # fmt: skip
+
+    print("\n| run | wall time | × serial |\n|---|---:|---:|")
+    print(f"| serial: `dvc repro` per project, then the suite's | {serial_s:.1f} s | 1.00 |")
+    print(f"| `--workers {args.workers}` | {workers_s:.1f} s | {workers_s / serial_s:.2f} |")
+    if args.ray_nodes:
+        print(f"| Ray, {args.ray_nodes} one-CPU nodes | {ray_s:.1f} s | {ray_s / serial_s:.2f} |")
+    for n, seconds in simulated.items():
+        print(f"| simulated, {n} nodes | {seconds:.1f} s | {seconds / serial_s:.2f} "
+              f"({seconds / critical:.2f}× the critical path {critical:.1f} s) |")  # fmt: skip
+    if args.json:
+        args.json.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
+
+
+if __name__ == "__main__":
+    main()
