@@ -14,11 +14,10 @@ from oodrl.impact import (
     Returns,
     calibrate_impact,
     impact_record,
-    impact_table,
     minimum_detectable_impact,
-    plot_impact_curves,
 )
 from oodrl.injectors.online import DynamicsScaling
+from oodrl.report.impact import impact_table, plot_impact_curves
 
 ENV_ID, LENGTH, DRIFT, COST = "OodrlToyDrift-v0", 10, 0.1, 0.3
 GRID = [0.2, 0.4, 0.6, 0.8, 1.0]
@@ -193,7 +192,7 @@ def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
         return CliRunner().invoke(
             app,
             ["impact", "gaussian_state_noise", "--policy", policy, "--out", f"{name}.yaml",
-             "--table", f"{name}.md", "--figure", f"{name}.png", "--episodes", "3", *extra],
+             "--episodes", "3", *extra],
         )  # fmt: skip
 
     for name in ("first", "second"):
@@ -205,7 +204,7 @@ def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
     # The post-hoc observation fault was calibrated live, with running statistics (no --id).
     assert document["faults"]["gaussian_state_noise"]["mode"] == "online"
     assert document["seeds"]["policy"] == [500000, 500002]
-    assert "gaussian_state_noise" in (tmp_path / "first.md").read_text()
+    assert "gaussian_state_noise" in impact_table(document)
     bad = impact("bad", "--grid", "0.5,0.2")
     assert bad.exit_code == 2 and "--grid must be increasing" in bad.output
     assert not (tmp_path / "bad.yaml").exists()

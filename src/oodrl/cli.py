@@ -15,11 +15,9 @@ from typing import Annotated
 import typer
 
 from oodrl.errors import ConfigError, OodrlError
+from oodrl.parallel import THREAD_POOL_VARIABLES
 
-# Stages parallelise explicitly (executor.workers processes); library thread pools would
-# oversubscribe the cores (OpenMP threads spin-wait: 10x slowdowns seen on 2 cores) and let
-# float results depend on the machine's core count. Set before numpy or torch is imported.
-THREAD_POOL_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
+# One thread per library pool (why: oodrl.parallel), set before numpy or torch is imported.
 for _variable in THREAD_POOL_VARIABLES:
     os.environ.setdefault(_variable, "1")
 
@@ -259,8 +257,6 @@ def impact(
         list[str] | None,
         typer.Argument(help="faults to calibrate (default: every one of benchmark.injectors)"),
     ] = None,
-    table: Annotated[Path | None, PathOption(help="also the tiers as a markdown table")] = None,
-    figure: Annotated[Path | None, PathOption(help="also the impact curves (PNG)")] = None,
     id: Annotated[  # noqa: A002 - the option is --id
         Path | None,
         typer.Option(help="clean ID set: the live observation faults' reference statistics"),
@@ -290,7 +286,7 @@ def impact(
         _known(name, config.benchmark.injectors, "benchmark.injectors")
     with _stage(f"impact@{faults[0]}" if faults and len(faults) == 1 else "impact"):
         run_impact(
-            config, policy, out, table, figure, id_path=id, injectors=faults,
+            config, policy, out, id_path=id, injectors=faults,
             grid=severities, n_episodes=episodes or config.tiers.episodes, horizon=horizon,
         )  # fmt: skip
 

@@ -123,9 +123,9 @@ def ran_stages(dvc_output: str) -> tuple[str, ...]:
 
 def task_environment(repo: Path) -> dict[str, str]:
     """What stage commands run with: the repository's own code first (the commit being built,
-    whatever oodrl the node has installed), one thread per library pool (why: `oodrl.cli`),
+    whatever oodrl the node has installed), one thread per library pool (why: `oodrl.parallel`),
     and the running interpreter's `oodrl` and `dvc` first on PATH."""
-    from oodrl.cli import THREAD_POOL_VARIABLES
+    from oodrl.parallel import THREAD_POOL_VARIABLES
 
     env = {**os.environ, **dict.fromkeys(THREAD_POOL_VARIABLES, "1"), "DVC_NO_ANALYTICS": "1"}
     env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(repo / "src"), env.get("PYTHONPATH")]))

@@ -147,6 +147,9 @@ CODE_EDITS = {  # edited file -> the stages allowed to run (DVC skips those whos
     "src/oodrl/injectors/posthoc.py": {  # observation_delay is the tiny params' post-hoc one
         "check_params", *injector_stages("observation_delay"),
         *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render", "tier_metrics",
+        # The tier stages of every fault import the live observation faults (an
+        # over-approximation: their outputs, and so what follows them, stay the same).
+        "impact@stuck_actuator", "collect_tiers@stuck_actuator",
     },
     "src/oodrl/metrics/ranking.py": {"check_params", "metrics", "render"},
 }  # fmt: skip

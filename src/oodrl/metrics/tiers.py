@@ -161,7 +161,7 @@ def compute_tier_results(params: Params, scores_dir: Path, impact_dir: Path) -> 
 
 
 def impact_document(params: Params, impact_dir: Path) -> dict[str, Any]:
-    """Every fault's impact record in one document, as `oodrl.impact.impact_table` and
+    """Every fault's impact record in one document, as `oodrl.report.impact.impact_table` and
     `plot_impact_curves` take it."""
     docs = {f: read_impact(impact_path(impact_dir, f), f) for f in params.benchmark.injectors}
     first = next(iter(docs.values()))
@@ -172,7 +172,7 @@ def impact_document(params: Params, impact_dir: Path) -> dict[str, Any]:
 def tier_tables(document: Mapping[str, Any], impact: Mapping[str, Any]) -> str:
     """Markdown: the tiers' severities per fault, then per tier the detection rate at α
     (with its CI), the median delay and the matched AUROC of every (detector, fault)."""
-    from oodrl.impact import impact_table
+    from oodrl.report.impact import impact_table
 
     k, alpha = document["k"], document["alpha"]
     lines = ["# Impact tiers and detection at a false-alarm budget", "",

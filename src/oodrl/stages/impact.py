@@ -1,5 +1,6 @@
-"""The impact stage (SPEC §15): every benchmarked fault's impact curve and tiers for one
-(environment, policy), as impact.yaml, a markdown table and a figure (`oodrl.impact`)."""
+"""The impact tier stages (SPEC §15): `impact` measures faults' impact curves and tiers for one
+(environment, policy) as impact.yaml (`oodrl.impact`; the table and figure of the tiers are
+tier_metrics', `oodrl.report.impact`); `collect_tiers` collects a fault's tier streams."""
 
 from __future__ import annotations
 
@@ -19,8 +20,6 @@ def run_impact(
     params: Params,
     policy_path: Path,
     out: Path,
-    table: Path | None,
-    figure: Path | None,
     *,
     id_path: Path | None = None,
     injectors: Sequence[str] | None = None,
@@ -30,9 +29,9 @@ def run_impact(
     horizon: int | None = None,
 ) -> dict:
     """Calibrate the impact of `injectors` (default: benchmark.injectors) and write the
-    document, its table and its figure; returns the document."""
+    document; returns it."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.impact import calibrate_impact, impact_table, live_injectors, plot_impact_curves
+    from oodrl.impact import calibrate_impact, live_injectors
     from oodrl.policies.load import load_policy
 
     if not grid or any(not 0 < s <= 1 for s in grid) or list(grid) != sorted(set(grid)):
@@ -55,10 +54,6 @@ def run_impact(
         workers=params.executor.resolved_workers,
     )
     atomic_write_text(out, yamlio.dump(document))
-    if table is not None:
-        atomic_write_text(table, impact_table(document))
-    if figure is not None:
-        plot_impact_curves(document, figure)
     return document
 
 

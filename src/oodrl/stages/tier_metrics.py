@@ -14,8 +14,8 @@ from oodrl.fileio import atomic_write_text
 def run_tier_metrics(
     params: Params, scores_dir: Path, impact_dir: Path, results_path: Path, report_dir: Path
 ) -> None:
-    from oodrl.impact import plot_impact_curves
     from oodrl.metrics.tiers import compute_tier_results, impact_document, tier_tables
+    from oodrl.report.impact import plot_impact_curves
 
     document = compute_tier_results(params, scores_dir, impact_dir)
     impact = impact_document(params, impact_dir)

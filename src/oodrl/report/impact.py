@@ -1,0 +1,68 @@
+"""The impact tiers as a reader sees them (SPEC §15): a markdown table of every fault's tiers and
+a figure of the impact curves, drawn from an impact document (`oodrl.impact`). The tier_metrics
+stage draws them; the impact stages only measure, so their code stamps leave the report out."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from oodrl.impact import UNREACHABLE
+
+
+def impact_table(document: Mapping[str, Any]) -> str:
+    """Markdown: per fault, the severity of each tier [CI] or unreachable, and R̃ at σ = max."""
+    from oodrl.report.tables import markdown_table
+
+    def cell(tier: Mapping[str, Any]) -> str:
+        value, (low, high) = tier["severity"], tier["ci"]
+        if value == UNREACHABLE:
+            return UNREACHABLE
+        show = [v if isinstance(v, str) else f"{v:.3f}" for v in (low, high)]
+        return f"{value:.3f} [{show[0]}, {show[1]}]"
+
+    names = list(document["levels"])
+    rows = []
+    for fault, record in sorted(document["faults"].items()):
+        last = record["curve"][-1]
+        rows.append(
+            [fault, *(cell(record["tiers"][n]) for n in names),
+             f"{last['normalised']:.3f} (σ={last['severity']:g})"]
+        )  # fmt: skip
+    header = ["fault", *(f"{n} (R̃={document['levels'][n]:g})" for n in names), "R̃ at largest σ"]
+    title = (
+        f"Impact tiers, {document['env_id']}: severity σ at which the normalised return first "
+        f"falls to each level (95% bootstrap CI), {document['n_episodes']} episodes per point\n\n"
+    )
+    return title + markdown_table(header, rows) + "\n"
+
+
+def plot_impact_curves(document: Mapping[str, Any], path: str | Path) -> Path:
+    """One line per fault: R̃(σ) with its CI band (raw estimates as points, monotone fit as line),
+    the tier levels as dashed lines."""
+    from oodrl.report.plots import _colours, _figure, _save
+
+    faults = sorted(document["faults"])
+    colours = _colours(faults)
+    figure = _figure(6.4, 4.2)
+    axes = figure.subplots()
+    for fault in faults:
+        curve = document["faults"][fault]["curve"]
+        xs = [0.0, *(p["severity"] for p in curve)]
+        colour = colours[fault]
+        axes.fill_between(xs, [1.0, *(p["ci"][0] for p in curve)],
+                          [1.0, *(p["ci"][1] for p in curve)], color=colour, alpha=0.12,
+                          linewidth=0)  # fmt: skip
+        axes.plot(xs, [1.0, *(p["monotone"] for p in curve)], color=colour, label=fault)
+        axes.plot(xs[1:], [p["normalised"] for p in curve], "o", markersize=3, color=colour)
+    for name, level in document["levels"].items():
+        axes.axhline(level, color="0.4", linestyle="--", linewidth=0.8)
+        axes.annotate(name, (0.0, level), fontsize=7, color="0.3", va="bottom")
+    axes.set_xlabel("severity σ", fontsize=8)
+    axes.set_ylabel("normalised return R̃", fontsize=8)
+    axes.set_title(f"Impact curves, {document['env_id']}", fontsize=9)
+    axes.tick_params(labelsize=7)
+    axes.grid(alpha=0.3, linewidth=0.5)
+    axes.legend(fontsize=7, frameon=False)
+    return _save(figure, path)
