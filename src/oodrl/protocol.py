@@ -17,6 +17,7 @@ import numpy as np
 
 from oodrl.config import Params
 from oodrl.core.adapter import EnvironmentAdapter
+from oodrl.core.injector import OnlineInjector
 from oodrl.core.policy import Policy
 from oodrl.core.trajectory import TrajectorySet
 from oodrl.envs import ENVIRONMENTS
@@ -114,17 +115,32 @@ def perturbed_sets(
 
     Online severities are simulated together so their rollouts share the stage's workers.
     """
-    from oodrl.injectors.apply import collect_online_sets, perturb_posthoc
+    from oodrl.injectors.apply import perturb_posthoc
 
     injector = params.injector(injector_name)
+    if injector.mode == "posthoc":
+        onset, offset = params.env.resolved_onset, params.anomaly.offset
+        clean = read_trajectories(eval_path, stage="collect_eval")
+        return [
+            perturb_posthoc(injector, clean, injector.spec(s, onset, offset), params.seed)
+            for s in severities
+        ]
+    label = f"{injector_name} ({len(severities)} severities)"
+    return online_sets(params, injector, severities, policy_path, label)
+
+
+def online_sets(
+    params: Params, injector: OnlineInjector, severities: list[float], policy_path: Path, label: str
+) -> list[TrajectorySet]:
+    """The evaluation streams with an online fault from the onset at each severity, simulated
+    together so their rollouts share the stage's workers: each stream is the matched twin of a
+    clean evaluation stream."""
+    from oodrl.injectors.apply import collect_online_sets
+
     onset, offset = params.env.resolved_onset, params.anomaly.offset
     specs = [injector.spec(severity, onset, offset) for severity in severities]
-    if injector.mode == "posthoc":
-        clean = read_trajectories(eval_path, stage="collect_eval")
-        return [perturb_posthoc(injector, clean, spec, params.seed) for spec in specs]
     adapter, policy = _adapter(params), _policy(params, policy_path)
     seeds = eval_seeds(params)
-    label = f"{injector_name} ({len(specs)} severities)"
     with progress_bar(len(seeds) * len(specs), label, params.executor.progress) as bar:
         sets = collect_online_sets(
             injector, adapter, policy, seeds, params.env.T, specs,

@@ -82,24 +82,12 @@ def tier_sets(
     seeds are the evaluation seeds, so each is the matched twin of a clean evaluation stream.
     """
     from oodrl.impact import live_injectors
-    from oodrl.injectors.apply import collect_online_sets
-    from oodrl.progress import progress_bar
-    from oodrl.protocol import _adapter, _policy, _set_attrs, eval_seeds
+    from oodrl.protocol import online_sets
 
     injector = live_injectors(params, [injector_name], id_path)[injector_name]
-    onset, offset = params.env.resolved_onset, params.anomaly.offset
-    specs = [injector.spec(severity, onset, offset) for severity in tiers.values()]
-    adapter, policy = _adapter(params), _policy(params, policy_path)
-    seeds = eval_seeds(params)
-    label = f"{injector_name} ({len(specs)} tiers)"
-    with progress_bar(len(seeds) * len(specs), label, params.executor.progress) as bar:
-        sets = collect_online_sets(
-            injector, adapter, policy, seeds, params.env.T, specs,
-            seed=params.seed, policy_seed=params.seed,
-            workers=params.executor.resolved_workers, progress=bar.update,
-        )  # fmt: skip
-    base = _set_attrs(params, adapter, policy)
+    label = f"{injector_name} ({len(tiers)} tiers)"
+    sets = online_sets(params, injector, list(tiers.values()), policy_path, label)
     return [
-        dataclasses.replace(t, attrs={**base, **t.attrs, "tier": tier})
+        dataclasses.replace(t, attrs={**t.attrs, "tier": tier})
         for tier, t in zip(tiers, sets, strict=True)
     ]
