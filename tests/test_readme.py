@@ -254,8 +254,8 @@ def check_detector_knob(command: str, knobs: dict[str, str], ran: list[str]) -> 
         assert detector_stage(detector, "fit") in ran, (
             f"`{command}` did not refit {detector}: {ran}"
         )
-        # Per-item stages: a detector's file, collect_*@injector; shared: these three.
-        shared = ("check_params", "metrics", "render")
+        # Per-item stages: a detector's file, collect_*@injector; shared: these four.
+        shared = ("check_params", "metrics", "render", "tier_metrics")
         own = detector_pipeline(detector)
         others = [s for s in ran if s not in shared and not s.startswith(own)]
         assert not others, f"`{command}` re-ran stages of other components: {others}"

@@ -62,5 +62,5 @@ def test_a_shared_detector_knob_reruns_that_detector_in_the_environment(cartpole
     params["detectors"]["kde_density"]["threshold_percentile"] = 95.0
     (cartpole_repo / "params.yaml").write_text(yaml.safe_dump(params))
     assert _ran(cartpole_repo) == {
-        "check_params", *detector_stages("kde_density"), "metrics", "render"
+        "check_params", *detector_stages("kde_density"), "metrics", "render", "tier_metrics"
     }  # fmt: skip

@@ -151,7 +151,7 @@ CODE_EDITS = {  # edited file -> the stages allowed to run (DVC skips those whos
         # over-approximation: their outputs, and so what follows them, stay the same).
         "impact@stuck_actuator", "collect_tiers@stuck_actuator",
     },
-    "src/oodrl/metrics/ranking.py": {"check_params", "metrics", "render"},
+    "src/oodrl/metrics/ranking.py": {"check_params", "metrics", "render", "tier_metrics"},
 }  # fmt: skip
 MUST_RUN = {  # the stages whose code stamp changed: they run even when outputs stay the same
     "src/oodrl/detectors/kde.py": {
