@@ -5,6 +5,8 @@ here on a few clean streams of the committed policies (SPEC §13)."""
 from __future__ import annotations
 
 import math
+import re
+import shlex
 from functools import cache
 from pathlib import Path
 
@@ -202,3 +204,72 @@ def test_the_monitor_command_over_episodes_needs_a_fault(monkeypatch):
     args = ["monitor", "--env", "CartPole-v1", "--detector", "cusum", "--episodes", "3"]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 2 and "name a --fault" in result.output
+
+
+# -- the README's demonstration ------------------------------------------------------------------
+MONITOR_SECTION = "Deploy a detector: the runtime monitor"
+CELL = re.compile(r"<!-- monitor-cell -->([\d.]+) \[([\d.]+), ([\d.]+)\]<!-- /monitor-cell -->")
+
+
+def _readme_demo() -> tuple[list[str], tuple[float, float, float]]:
+    """The README's `oodrl monitor … --episodes N` command (its arguments) and the leaderboard
+    cell it quotes: detection_rate@K and its interval."""
+    from test_readme import README, blocks, parse_sections, shell_commands
+
+    section = parse_sections(README.read_text())[MONITOR_SECTION]
+    (command,) = [c for b in blocks(section, "bash") for c in shell_commands(b)]
+    args = shlex.split(command)
+    assert args[:2] == ["oodrl", "monitor"] and "--episodes" in args, command
+    rate, low, high = (float(x) for x in CELL.search(section.prose).groups())
+    return args[2:], (rate, low, high)
+
+
+def _option(args: list[str], name: str) -> str:
+    return args[args.index(name) + 1]
+
+
+@pytest.mark.slow
+def test_the_readme_monitor_demo_agrees_with_its_leaderboard_cell(monkeypatch):
+    """The rate the README's demo prints (a detector fitted by the monitor, on its own seeds)
+    lies in the interval of the leaderboard cell the README quotes for it."""
+    from typer.testing import CliRunner
+
+    from oodrl.cli import app
+
+    args, (_, low, high) = _readme_demo()
+    monkeypatch.chdir(ROOT)
+    result = CliRunner().invoke(app, ["monitor", *args])
+    assert result.exit_code == 0, result.output
+    k = 100 if "--k" not in args else int(_option(args, "--k"))
+    printed = re.search(rf"detection_rate@{k}: ([\d.]+) ", result.output)
+    assert printed, result.output
+    assert low <= float(printed.group(1)) <= high, (result.output, (low, high))
+
+
+def test_the_readme_monitor_cell_is_the_committed_result():
+    """The cell the README quotes is the committed run's (reports/tier_results.yaml, a DVC
+    output: present after `dvc repro` or `dvc pull`), at the tier severity the demo deploys."""
+    results = ROOT / "reports" / "tier_results.yaml"
+    if not results.is_file():
+        pytest.skip("reports/tier_results.yaml is not built here (run `dvc repro`)")
+    from oodrl import yamlio
+
+    args, (rate, low, high) = _readme_demo()
+    detector, fault = _option(args, "--detector"), _option(args, "--fault")
+    severity = float(_option(args, "--severity"))
+    records = yamlio.load(results.read_text())["records"]
+    (record,) = [
+        r
+        for r in records
+        if r["detector"] == detector and r["injector"] == fault and r["tier"] == "mild"
+    ]
+    point = record["operating_point"]
+    assert round(record["severity"], 3) == severity
+    assert (
+        round(point["detection_rate"], 2),
+        *(round(x, 2) for x in point["detection_rate_ci"]),
+    ) == (
+        rate,
+        low,
+        high,
+    )
