@@ -228,3 +228,71 @@ def test_minimum_detectable_impacts_from_a_sweep_document(document):
     assert table["a"]["strong"] == pytest.approx(expected_loss, abs=1e-5)
     assert table["b"]["strong"] == BEYOND_RANGE
     assert "not_calibrated" not in table["a"]
+
+
+# -- stepped faults ------------------------------------------------------------------------------
+#: A stepped fault of 4 steps: R̃ at each step's midpoint (k − ½)/4.
+STEPPED = {0.125: 0.97, 0.375: 0.85, 0.625: 0.60, 0.875: 0.30}
+
+
+def _returns(normalised: dict[float, float]) -> Returns:
+    """Returns whose normalised means are `normalised` exactly (clean 10, random 0)."""
+    faulty = {s: np.full(8, 10.0 * r) for s, r in normalised.items()}
+    return Returns(np.full(8, 10.0), faulty, np.zeros(8))
+
+
+def test_a_stepped_fault_takes_each_tier_at_a_step_that_lands_in_its_band():
+    stepped = impact_record(_returns(STEPPED), n_boot=50, stepped=True)["tiers"]
+    # mild: the first step at or below 0.95 (R̃ 0.85) is already below 0.90, where moderate
+    # begins: no step costs 5-10% of the return. moderate and severe land in their bands.
+    assert {name: t["severity"] for name, t in stepped.items()} == {
+        "mild": UNREACHABLE,
+        "moderate": 0.375,
+        "severe": 0.625,
+    }
+    # Read as a continuous curve, mild would be a σ between the first two steps' midpoints,
+    # which gives the fault of the second step, at R̃ 0.85, not 0.95.
+    continuous = impact_record(_returns(STEPPED), n_boot=50)["tiers"]
+    assert 0.125 < continuous["mild"]["severity"] < 0.375
+
+
+def test_a_stepped_severe_tier_past_half_the_return_is_unreachable():
+    tiers = impact_record(_returns({0.25: 0.92, 0.75: 0.40}), n_boot=50, stepped=True)["tiers"]
+    assert tiers["mild"]["severity"] == 0.25
+    assert tiers["moderate"]["severity"] == tiers["severe"]["severity"] == UNREACHABLE
+
+
+def test_live_stepped_faults_declare_their_steps_and_each_midpoint_is_its_step():
+    from oodrl.impact import severity_steps, step_severities
+    from oodrl.injectors.live_observation import (
+        LiveCorrelationBreak,
+        LiveGaussianStateNoise,
+        LiveObservationDelay,
+    )
+
+    delay = LiveObservationDelay(max_delay=10)
+    assert severity_steps(delay, ToyAdapter()) == 10
+    assert [delay.delay(s) for s in step_severities(10)] == list(range(1, 11))
+    assert severity_steps(LiveCorrelationBreak(), ToyAdapter()) == ToyAdapter().state_dim
+    assert severity_steps(LiveGaussianStateNoise(), ToyAdapter()) is None
+    assert severity_steps(DynamicsScaling(), ToyAdapter()) is None
+
+
+def test_a_stepped_fault_is_measured_once_per_step():
+    from oodrl.injectors.live_observation import LiveObservationDelay
+
+    injectors = {"delay": LiveObservationDelay(max_delay=3)}
+    document = calibrate_impact(ToyAdapter(), AlwaysOne(), injectors, GRID, 4, n_boot=20)
+    record = document["faults"]["delay"]
+    assert record["severity_steps"] == 3
+    assert [p["severity"] for p in record["curve"]] == pytest.approx([1 / 6, 0.5, 5 / 6])
+    # The always-1 policy never reads its observation: a delayed sensor costs it nothing.
+    assert all(t["severity"] == UNREACHABLE for t in record["tiers"].values())
+
+
+def test_minimum_detectable_impact_of_a_stepped_fault_is_its_steps_impact():
+    xs, ys = [0.0, *STEPPED], [1.0, *STEPPED.values()]
+    # AUROC reaches 0.9 first at σ = 0.2, which is step ⌈0.2·4⌉ = 1: a loss of 1 − 0.97.
+    loss = minimum_detectable_impact(xs, ys, [0.1, 0.2, 0.4], [0.5, 0.95, 0.99], steps=4)
+    assert loss == pytest.approx(0.03)
+    assert minimum_detectable_impact(xs, ys, [0.1], [0.5], steps=4) == BEYOND_RANGE

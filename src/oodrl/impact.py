@@ -26,6 +26,16 @@ mild ≤ moderate ≤ severe by construction. A level the fitted curve does not 
 is "unreachable", never clipped to the largest σ. Confidence intervals: a percentile bootstrap
 (π's episodes resampled jointly across the clean run and every σ, the random policy's on their
 own), the isotonic fit and the tier read again in every replicate.
+
+Stepped faults. A fault that changes in whole steps (`correlation_break`: ⌈σ·d⌉ coordinates;
+`observation_delay`: ⌈σ·max_delay⌉ steps of delay; `severity_steps` of its live injector) is the
+same fault for every σ of a step, so its curve is measured once per step, at the step's midpoint
+(k − ½)/n (safe from the rounding of σ·n at the step's edges), instead of on the grid, and
+nothing is interpolated between steps: a tier is the first step whose fitted R̃ falls to its
+level, if that step does not also fall past the level where the next tier begins (below
+SEVERE_FLOOR for `severe`); otherwise no step lands in the tier and it is unreachable. Reading
+such a curve linearly would name severities, between σ = 0 and the first step, that give the
+first step's fault with the first step's impact.
 """
 
 from __future__ import annotations
@@ -48,6 +58,10 @@ if TYPE_CHECKING:
 
 #: The tiers: the normalised return R̃ at which each begins (SPEC §15).
 LEVELS = {"mild": 0.95, "moderate": 0.90, "severe": 0.75}
+#: A stepped fault's `severe` step keeps R̃ ≥ this: a step that costs more than half the return
+#: is beyond the tiers (ANOMRL's lowest calibration level; the RIQN benchmark leaves out faults
+#: that make the agent fail at once).
+SEVERE_FLOOR = 0.5
 UNREACHABLE = "unreachable"
 BEYOND_RANGE = "beyond range"
 POLICY_SEED_OFFSET = 500_000
@@ -161,6 +175,21 @@ def random_policy_returns(
     return first_episode_returns(tset)
 
 
+def severity_steps(injector: OnlineInjector, adapter: EnvironmentAdapter) -> int | None:
+    """The number of steps of a stepped fault on `adapter`, None for a continuous one (the live
+    observation faults declare it; every dynamics and action fault changes continuously)."""
+    from oodrl.injectors.live_observation import LiveObservationInjector
+
+    if isinstance(injector, LiveObservationInjector):
+        return injector.severity_steps(adapter)
+    return None
+
+
+def step_severities(n_steps: int) -> list[float]:
+    """One severity per step of a stepped fault: step k's midpoint (k − ½)/n."""
+    return [(k - 0.5) / n_steps for k in range(1, n_steps + 1)]
+
+
 def live_injectors(
     params: Params, names: Sequence[str], id_path: Path | None = None
 ) -> dict[str, OnlineInjector]:
@@ -219,10 +248,24 @@ def first_rise(xs: Sequence[float], ys: Sequence[float], level: float) -> float 
 
 
 def tier_severities(
-    severities: Sequence[float], monotone: Sequence[float], levels: Mapping[str, float] = LEVELS
+    severities: Sequence[float],
+    monotone: Sequence[float],
+    levels: Mapping[str, float] = LEVELS,
+    stepped: bool = False,
 ) -> dict[str, float | None]:
-    """Each tier's severity on a monotone curve that includes σ = 0; None = unreachable."""
-    return {name: first_crossing(severities, monotone, level) for name, level in levels.items()}
+    """Each tier's severity on a monotone curve that includes σ = 0; None = unreachable. A
+    stepped fault's curve has one point per step and is not interpolated (module docstring)."""
+    if not stepped:
+        return {name: first_crossing(severities, monotone, lvl) for name, lvl in levels.items()}
+    ys = np.asarray(monotone, dtype=np.float64)
+    descending = sorted(levels.values(), reverse=True)
+    tiers: dict[str, float | None] = {}
+    for name, level in levels.items():
+        below = np.flatnonzero(ys <= level)
+        later = [lvl for lvl in descending if lvl < level]
+        floor = later[0] if later else SEVERE_FLOOR
+        tiers[name] = float(severities[below[0]]) if below.size and ys[below[0]] >= floor else None
+    return tiers
 
 
 def _normalised(faulty_mean, clean_mean, random_mean):
@@ -240,8 +283,10 @@ def impact_record(
     n_boot: int = 1000,
     ci: float = 0.95,
     seed: int = 0,
+    stepped: bool = False,
 ) -> dict[str, Any]:
-    """The impact curve (raw and monotone, with bootstrap CIs) and the tiers, as YAML holds it."""
+    """The impact curve (raw and monotone, with bootstrap CIs) and the tiers, as YAML holds it;
+    `stepped`: the severities are a stepped fault's steps (module docstring)."""
     severities = sorted(returns.faulty)
     if not severities or severities[0] <= 0:
         raise ConfigError(f"The severity grid must be positive severities; got {severities}.")
@@ -268,10 +313,11 @@ def impact_record(
     low, high = np.quantile(replicates, [tail, 1 - tail], axis=0)
     replicate_tiers = {name: [] for name in levels}
     for row in replicates:
-        for name, value in tier_severities(xs, monotone_curve(xs, [1.0, *row]), levels).items():
+        row_curve = monotone_curve(xs, [1.0, *row])
+        for name, value in tier_severities(xs, row_curve, levels, stepped).items():
             replicate_tiers[name].append(math.inf if value is None else value)
     tiers = {}
-    for name, value in tier_severities(xs, monotone, levels).items():
+    for name, value in tier_severities(xs, monotone, levels, stepped).items():
         ordered = np.sort(replicate_tiers[name])
         bounds = (
             ordered[int(math.floor(tail * n_boot))],
@@ -304,6 +350,7 @@ def minimum_detectable_impact(
     metric_severities: Sequence[float],
     metric_values: Sequence[float],
     target: float = 0.9,
+    steps: int | None = None,
 ) -> float | str:
     """The smallest return loss 1 − R̃ at which a detection metric (matched AUROC, or
     detection_rate@K) reaches `target` (SPEC §15), or "beyond range".
@@ -311,8 +358,16 @@ def minimum_detectable_impact(
     The metric's curve over its severities (linear between points) gives the first σ at which it
     reaches the target; 1 − R̃ is read at that σ on the monotone impact curve (which includes
     σ = 0, R̃ = 1), linear between grid points. Beyond range when the metric never reaches the
-    target, or reaches it above the impact grid's largest severity.
+    target, or reaches it above the impact grid's largest severity. A stepped fault (`steps`,
+    one impact point per step) is read without interpolating: the first metric severity that
+    reaches the target, and the impact of its step ⌈σ·n⌉, as the injector computes it.
     """
+    if steps is not None:
+        reached = [s for s, v in zip(metric_severities, metric_values, strict=True) if v >= target]
+        if not reached or reached[0] > 1:
+            return BEYOND_RANGE
+        step = math.ceil(reached[0] * steps)
+        return round(1.0 - float(impact_monotone[step]), 6) + 0.0
     severity = first_rise(metric_severities, metric_values, target)
     xs = np.asarray(impact_severities, dtype=np.float64)
     if severity is None or severity > xs[-1]:
@@ -340,10 +395,11 @@ def minimum_detectable_impacts(
         if fault not in impact["faults"]:
             continue
         xs, curve = impact_curve_points(impact["faults"][fault])
+        steps = impact["faults"][fault].get("severity_steps")
         for detector, values in sorted(per_detector.items()):
             severities = sorted(values)
             table.setdefault(detector, {})[fault] = minimum_detectable_impact(
-                xs, curve, severities, [values[s] for s in severities], target
+                xs, curve, severities, [values[s] for s in severities], target, steps
             )
     return table
 
@@ -381,14 +437,19 @@ def calibrate_impact(
     faults = {}
     for name in sorted(injectors):
         injector = injectors[name]
+        steps = severity_steps(injector, adapter)
         faulty = faulty_returns(
-            adapter, policy, injector, severities, n_episodes, seed=seed, horizon=horizon,
-            workers=workers,
+            adapter, policy, injector, step_severities(steps) if steps else severities,
+            n_episodes, seed=seed, horizon=horizon, workers=workers,
         )  # fmt: skip
+        record = impact_record(
+            Returns(clean, faulty, random), n_boot=n_boot, ci=ci, seed=seed, stepped=bool(steps)
+        )
         faults[name] = {
-            **impact_record(Returns(clean, faulty, random), n_boot=n_boot, ci=ci, seed=seed),
+            **record,
             "mode": injector.mode,
             "params": {k: v for k, v in sorted(injector.get_params().items()) if k != "severity"},
+            **({"severity_steps": steps} if steps else {}),
         }
     n = n_episodes
     return {

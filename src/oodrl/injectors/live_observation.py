@@ -167,6 +167,12 @@ class DelayedSensor(SensorFault):
 class LiveObservationInjector(OnlineInjector):
     """Base of the live observation faults (mode "online")."""
 
+    def severity_steps(self, adapter: EnvironmentAdapter) -> int | None:
+        """How many distinct faults σ ∈ (0, 1] gives when the fault changes in whole steps (a
+        count of coordinates, a delay in steps): step k is every σ in ((k − 1)/n, k/n]. None
+        when the fault changes continuously with σ (`oodrl.impact` reads tiers accordingly)."""
+        return None
+
 
 class _WithStatistics(LiveObservationInjector):
     """A live fault scaled by clean statistics: `mean`/`scale` lists (one per observation
@@ -226,6 +232,9 @@ class LiveCorrelationBreak(LiveObservationInjector):
 
     name: ClassVar[str] = "live_correlation_break"
 
+    def severity_steps(self, adapter: EnvironmentAdapter) -> int | None:
+        return adapter.state_dim
+
     def fault(self, spec: AnomalySpec, rng: np.random.Generator) -> Fault:
         return DecorrelatingSensor(spec.severity, rng)
 
@@ -254,6 +263,9 @@ class LiveObservationDelay(LiveObservationInjector):
 
     #: The same k as post hoc.
     delay = ObservationDelay.delay
+
+    def severity_steps(self, adapter: EnvironmentAdapter) -> int | None:
+        return self.max_delay
 
     def fault(self, spec: AnomalySpec, rng: np.random.Generator) -> Fault:
         return DelayedSensor(self.delay(spec.severity))

@@ -105,16 +105,15 @@ def _minimum_detectable_impact(
     records: list[dict], impacts: Mapping[str, dict], k: int
 ) -> dict[str, dict[str, dict[str, float | str]]]:
     """detector -> fault -> {criterion: the return loss 1 − R̃ at which it reaches 0.9}."""
-    from oodrl.impact import BEYOND_RANGE, minimum_detectable_impact
+    from oodrl.impact import BEYOND_RANGE, impact_curve_points, minimum_detectable_impact
 
     by_cell: dict[tuple[str, str], list[dict]] = {}
     for record in records:
         by_cell.setdefault((record["detector"], record["injector"]), []).append(record)
     table: dict[str, dict[str, dict[str, float | str]]] = {}
     for (detector, fault), cell in sorted(by_cell.items()):
-        curve = impacts[fault]["fault"]["curve"]
-        xs = [0.0, *(float(p["severity"]) for p in curve)]
-        ys = [1.0, *(float(p["monotone"]) for p in curve)]
+        xs, ys = impact_curve_points(impacts[fault]["fault"])
+        steps = impacts[fault]["fault"].get("severity_steps")
         cell = sorted(cell, key=lambda r: r["severity"])
         severities = [r["severity"] for r in cell]
         criteria = {
@@ -122,7 +121,7 @@ def _minimum_detectable_impact(
             detection_metric(k): [r["operating_point"]["detection_rate"] for r in cell],
         }
         table.setdefault(detector, {})[fault] = {
-            name: minimum_detectable_impact(xs, ys, severities, values, MDI_TARGET)
+            name: minimum_detectable_impact(xs, ys, severities, values, MDI_TARGET, steps)
             if severities
             else BEYOND_RANGE
             for name, values in criteria.items()

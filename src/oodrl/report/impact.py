@@ -26,14 +26,18 @@ def impact_table(document: Mapping[str, Any]) -> str:
     rows = []
     for fault, record in sorted(document["faults"].items()):
         last = record["curve"][-1]
+        steps = record.get("severity_steps")
+        label = f"{fault} ({steps} steps)" if steps else fault
         rows.append(
-            [fault, *(cell(record["tiers"][n]) for n in names),
+            [label, *(cell(record["tiers"][n]) for n in names),
              f"{last['normalised']:.3f} (σ={last['severity']:g})"]
         )  # fmt: skip
     header = ["fault", *(f"{n} (R̃={document['levels'][n]:g})" for n in names), "R̃ at largest σ"]
     title = (
         f"Impact tiers, {document['env_id']}: severity σ at which the normalised return first "
-        f"falls to each level (95% bootstrap CI), {document['n_episodes']} episodes per point\n\n"
+        f"falls to each level (95% bootstrap CI), {document['n_episodes']} episodes per point. "
+        "A fault of n steps is measured at each step's midpoint and takes a tier only at a step "
+        "whose R̃ lands between the tier's level and the next one's (0.5 after severe)\n\n"
     )
     return title + markdown_table(header, rows) + "\n"
 
