@@ -1,4 +1,5 @@
-"""The environment suite: every committed policy meets its SPEC §11 bar on unseen seeds."""
+"""The environment suite: every committed policy (every run of SPEC §16) meets its SPEC §11 bar
+on unseen seeds."""
 
 from __future__ import annotations
 
@@ -9,10 +10,16 @@ import pytest
 from typer.testing import CliRunner
 
 from oodrl.cli import app
-from oodrl.suite import PIPELINE_DIRS, POLICY_BARS, policy_path
+from oodrl.config import read_params_data
+from oodrl.suite import MORE_POLICIES, PIPELINE_DIRS, POLICY_BARS, suite_runs
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMITTED = [env for env in PIPELINE_DIRS if policy_path(env, ROOT).is_file()]
+#: "environment/policy" → (environment id, its committed policy file).
+COMMITTED = {
+    f"{env_id}/{policy}": (env_id, ROOT / directory / "models" / "policy.pt")
+    for (env_id, policy), directory in suite_runs().items()
+    if (ROOT / directory / "models" / "policy.pt").is_file()
+}
 
 
 def test_every_environment_of_the_suite_has_a_bar_and_a_params_file():
@@ -21,21 +28,37 @@ def test_every_environment_of_the_suite_has_a_bar_and_a_params_file():
         assert (ROOT / directory / "params.yaml").is_file(), env_id
 
 
-@pytest.mark.parametrize("env_id", COMMITTED)
-def test_committed_policy_report_meets_the_bar(env_id):
-    report = json.loads(policy_path(env_id, ROOT).with_suffix(".json").read_text())
+def test_every_further_policy_is_its_environments_pipeline_with_its_own_training_seed():
+    seeds = {}
+    for (env_id, policy), directory in MORE_POLICIES.items():
+        params = read_params_data(ROOT / directory / "params.yaml")
+        first = read_params_data(ROOT / PIPELINE_DIRS[env_id] / "params.yaml")
+        assert params["env"] == first["env"] and params["anomaly"] == first["anomaly"]
+        train = params["policy"]["train"]
+        assert {**train, "seed": 0} == {**first["policy"]["train"], "seed": 0}, directory
+        seeds.setdefault(env_id, {"0": first["policy"]["train"].get("seed", 0)})[policy] = train[
+            "seed"
+        ]
+    for env_id, by_policy in seeds.items():
+        assert len(set(by_policy.values())) == len(by_policy), (env_id, by_policy)
+
+
+@pytest.mark.parametrize("run", COMMITTED)
+def test_committed_policy_report_meets_the_bar(run):
+    env_id, path = COMMITTED[run]
+    report = json.loads(path.with_suffix(".json").read_text())
     assert report["env_id"] == env_id
     assert report["evaluation"]["episodes"] == 30
     assert report["evaluation"]["mean"] >= POLICY_BARS[env_id]
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("env_id", COMMITTED)
-def test_evaluate_policy_on_unseen_seeds_meets_the_bar(env_id, monkeypatch):
+@pytest.mark.parametrize("run", COMMITTED)
+def test_evaluate_policy_on_unseen_seeds_meets_the_bar(run, monkeypatch):
+    env_id, path = COMMITTED[run]
     monkeypatch.chdir(ROOT)
-    result = CliRunner().invoke(
-        app, ["evaluate-policy", "--env", env_id, "--episodes", "30", "--seed", "2000000"]
-    )
+    args = ["--env", env_id, "--policy", str(path), "--episodes", "30", "--seed", "2000000"]
+    result = CliRunner().invoke(app, ["evaluate-policy", *args])
     assert result.exit_code == 0, result.output
     assert "bar" in result.output and "met" in result.output and "NOT met" not in result.output
 

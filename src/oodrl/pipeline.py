@@ -545,11 +545,11 @@ SUITE_DIR = Path(ENVIRONMENTS_DIR) / "suite"
 def rendered_suite(root: Path) -> str:
     """pipeline/suite/dvc.yaml: one stage reading every environment's results."""
     project = Project(root.resolve(), (root / SUITE_DIR).resolve())
-    from oodrl.suite import PIPELINE_DIRS
+    from oodrl.suite import suite_runs
 
-    # The suite's environments only, as the leaderboard reads them: a pipeline `oodrl new`
-    # made stays off the leaderboard unless it is added to PIPELINE_DIRS (SPEC §18).
-    suite = {(root / d).resolve() for d in PIPELINE_DIRS.values()}
+    # The suite's runs only, as the leaderboard reads them: a pipeline `oodrl new` made stays
+    # off the leaderboard unless it is added to oodrl.suite's PIPELINE_DIRS (SPEC §18).
+    suite = {(root / d).resolve() for d in suite_runs().values()}
     environments = [d for d in pipeline_dirs(root) if d.resolve() in suite]
     code = sorted(project.relative(p) for p in project.command_closure("leaderboard"))
     stage = {

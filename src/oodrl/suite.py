@@ -1,8 +1,10 @@
 """The environment suite (SPEC §11): each environment's pipeline directory, in one place.
 
-The root of the project is the paper's default pipeline (LunarLander); every other environment
-has its own pipeline under ``pipeline/<directory>/``, whose ``params.yaml`` extends the shared
-one and whose ``models/policy.pt`` is its committed policy.
+The root of the project is the paper's default pipeline (LunarLander, the paper's eight
+detectors). Every environment of the suite, LunarLander included, has its own pipeline under
+``pipeline/<directory>/``, whose ``params.yaml`` extends the suite's (``pipeline/params.yaml``:
+the paper's protocol plus the library detectors, SPEC §17) and whose ``models/policy.pt`` is its
+committed policy (LunarLander's is the root's, byte for byte).
 """
 
 from __future__ import annotations
@@ -11,7 +13,7 @@ from pathlib import Path
 
 #: Environment id → its pipeline directory, relative to the project root.
 PIPELINE_DIRS: dict[str, Path] = {
-    "LunarLander-v3": Path("."),
+    "LunarLander-v3": Path("pipeline/lunar_lander"),
     "CartPole-v1": Path("pipeline/cartpole"),
     "Acrobot-v1": Path("pipeline/acrobot"),
     "Pendulum-v1": Path("pipeline/pendulum"),
@@ -19,6 +21,11 @@ PIPELINE_DIRS: dict[str, Path] = {
     "HalfCheetah-v5": Path("pipeline/half_cheetah"),
     "Hopper-v5": Path("pipeline/hopper"),
 }
+
+#: Each environment's further policies (SPEC §16), trained like its first from training seeds
+#: 1, 2, … and each built by a pipeline of its own: (environment id, policy) → pipeline
+#: directory. An environment's policy "0" is its PIPELINE_DIRS entry.
+MORE_POLICIES: dict[tuple[str, str], Path] = {}
 
 #: Mean return over 30 held-out episodes a committed policy must reach (SPEC §11).
 POLICY_BARS: dict[str, float] = {
@@ -30,6 +37,14 @@ POLICY_BARS: dict[str, float] = {
     "HalfCheetah-v5": 3000.0,
     "Hopper-v5": 2000.0,
 }
+
+
+def suite_runs() -> dict[tuple[str, str], Path]:
+    """(environment id, policy) → its pipeline directory: every run the leaderboard reads."""
+    from oodrl.metrics.leaderboard import FIRST_POLICY
+
+    runs = {(env_id, FIRST_POLICY): directory for env_id, directory in PIPELINE_DIRS.items()}
+    return {**runs, **MORE_POLICIES}
 
 
 def policy_path(env_id: str, root: Path = Path(".")) -> Path:

@@ -13,17 +13,14 @@ TIER_RESULTS = Path("reports/tier_results.yaml")
 
 
 def results_files(root: Path) -> dict[tuple[str, str], list[Path]]:
-    """(environment, policy) → the results files the leaderboard reads.
-
-    One committed policy per environment today: each pipeline's results are its policy "0".
-    """
-    from oodrl.metrics.leaderboard import FIRST_POLICY
-    from oodrl.suite import PIPELINE_DIRS
+    """(environment, policy) → the results files the leaderboard reads: each run's pipeline
+    (`oodrl.suite.suite_runs`)."""
+    from oodrl.suite import suite_runs
 
     files = {}
-    for env, directory in PIPELINE_DIRS.items():
+    for run, directory in suite_runs().items():
         tiers = root / directory / TIER_RESULTS
-        files[(env, FIRST_POLICY)] = [
+        files[run] = [
             root / directory / HEADLINE_RESULTS,
             *([tiers] if tiers.is_file() else []),
         ]

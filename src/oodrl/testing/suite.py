@@ -77,8 +77,7 @@ def _edit_yaml(path: Path, edit: ParamsEdit) -> None:
 
 
 def _cut_suite_list(suite_module: Path, pipelines: list[str]) -> None:
-    """Keep the PIPELINE_DIRS entries whose directory is in `pipelines`."""
-    block = re.compile(r"(PIPELINE_DIRS: dict\[str, Path\] = \{\n)(.*?)(\}\n)", re.S)
+    """Keep the PIPELINE_DIRS and MORE_POLICIES entries whose directory is in `pipelines`."""
     entry = re.compile(r'Path\("([^"]+)"\)')
 
     def kept(match: re.Match) -> str:
@@ -86,9 +85,12 @@ def _cut_suite_list(suite_module: Path, pipelines: list[str]) -> None:
         kept_lines = [line for line in lines if entry.search(line)[1] in pipelines]
         return match[1] + "".join(kept_lines) + match[3]
 
-    text, found = block.subn(kept, suite_module.read_text(), count=1)
-    if found != 1:
-        raise RuntimeError(f"{suite_module}: no PIPELINE_DIRS block to cut")
+    text = suite_module.read_text()
+    for name in ("PIPELINE_DIRS", "MORE_POLICIES"):
+        block = re.compile(rf"({name}: dict\[[^\n]*\] = \{{\n)(.*?)(\}}\n)", re.S)
+        text, found = block.subn(kept, text, count=1)
+        if found != 1:
+            raise RuntimeError(f"{suite_module}: no {name} block to cut")
     suite_module.write_text(text)
 
 
