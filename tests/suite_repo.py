@@ -1,7 +1,7 @@
-"""A suite of two environments (LunarLander at the root, CartPole) at tiny params, in a fresh
-git + DVC repository holding one commit of the project: what `oodrl suite run` and the DVC
-remote tests build. Stage commands run the copy's own code (`code_env`), so edits other people
-have in the working tree never reach a test build."""
+"""The root pipeline (LunarLander) and CartPole, the suite's one environment, at tiny params,
+in a fresh git + DVC repository holding one commit of the project: what `oodrl suite run` and
+the DVC remote tests build. Stage commands run the copy's own code (`code_env`), so edits
+other people have in the working tree never reach a test build."""
 
 from __future__ import annotations
 
@@ -24,6 +24,11 @@ def _tiny(params: dict) -> None:
         params["tiers"].update(grid=[0.5, 1.0], episodes=2, n_calibration=19)
 
 
+def _root_detectors(params: dict) -> None:
+    """The suite's params add the library detectors to the root's list: keep the root's."""
+    params.pop("benchmark", None)
+
+
 def _tiny_environment(params: dict) -> None:
     params["env"] = {**params.get("env", {}), "T": 60, "onset": None}
 
@@ -31,7 +36,7 @@ def _tiny_environment(params: dict) -> None:
 def two_environment_suite(source: Path, commit: str, dest: Path) -> Path:
     """`commit` of `source` in `dest`: root and CartPole, one detector and one injector, T=60,
     a handful of episodes."""
-    return suite_copy(source, commit, dest, PIPELINES, _tiny, _tiny_environment)
+    return suite_copy(source, commit, dest, PIPELINES, _tiny, _tiny_environment, _root_detectors)
 
 
 def serial_suite(repo: Path) -> list[str]:

@@ -22,6 +22,7 @@ import yaml
 from oodrl.testing.pipeline import repro, run
 
 SUITE = "pipeline/suite"
+SUITE_PARAMS = "pipeline/params.yaml"
 ParamsEdit = Callable[[dict[str, Any]], None]
 
 
@@ -43,16 +44,18 @@ def suite_copy(
     pipelines: list[str],
     edit: ParamsEdit | None = None,
     edit_environment: ParamsEdit | None = None,
+    edit_suite: ParamsEdit | None = None,
 ) -> Path:
     """`commit` of `source` in `dest` with the suite cut to `pipelines` ('.' is the root);
-    `edit` changes the shared params.yaml, `edit_environment` each kept environment's own."""
+    `edit` changes the root's params.yaml, `edit_suite` the suite's (pipeline/params.yaml, which
+    every environment extends), `edit_environment` each kept environment's own."""
     dest.mkdir(parents=True)
     archive = subprocess.run(
         ["git", "archive", commit], cwd=source, capture_output=True, check=True
     )
     with tarfile.open(fileobj=io.BytesIO(archive.stdout)) as tar:
         tar.extractall(dest, filter="data")
-    for directory in sorted((dest / "pipeline").iterdir()):
+    for directory in sorted(d for d in (dest / "pipeline").iterdir() if d.is_dir()):
         name = directory.relative_to(dest).as_posix()
         if name == SUITE:
             continue
@@ -62,6 +65,8 @@ def suite_copy(
             _edit_yaml(directory / "params.yaml", edit_environment)
     if edit is not None:
         _edit_yaml(dest / "params.yaml", edit)
+    if edit_suite is not None:
+        _edit_yaml(dest / SUITE_PARAMS, edit_suite)
     _cut_suite_list(dest / "src" / "oodrl" / "suite.py", pipelines)
     run(dest, "oodrl", "pipeline", "write", env=code_env(dest))
     run(dest, "git", "init", "-q")
