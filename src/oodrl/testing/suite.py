@@ -87,12 +87,13 @@ def _cut_suite_list(suite_module: Path, pipelines: list[str]) -> None:
 
     def kept(match: re.Match) -> str:
         lines = match[2].splitlines(keepends=True)
-        kept_lines = [line for line in lines if entry.search(line)[1] in pipelines]
+        found = [(line, entry.search(line)) for line in lines]
+        kept_lines = [line for line, e in found if e is None or e[1] in pipelines]
         return match[1] + "".join(kept_lines) + match[3]
 
     text = suite_module.read_text()
-    for name in ("PIPELINE_DIRS", "MORE_POLICIES"):
-        block = re.compile(rf"({name}: dict\[[^\n]*\] = \{{\n)(.*?)(\}}\n)", re.S)
+    for name in ("PIPELINE_DIRS", "MORE_POLICIES"):  # one entry a line, or an empty {}
+        block = re.compile(rf"({name}: dict\[[^\n]*\] = \{{)(.*?)(\}}\n)", re.S)
         text, found = block.subn(kept, text, count=1)
         if found != 1:
             raise RuntimeError(f"{suite_module}: no {name} block to cut")
