@@ -1,5 +1,6 @@
 """An environment's own pipeline (SPEC §12): pipeline/cartpole/dvc.yaml, generated from the
-template, reads pipeline/cartpole/params.yaml, which extends the shared params.yaml. The
+template, reads pipeline/cartpole/params.yaml, which extends the suite's pipeline/params.yaml
+and through it the shared params.yaml. The
 directory is a DVC project of its own (a subrepo sharing the root's cache): `dvc repro` runs
 in it, and the root's `dvc status` does not list its stages."""
 
@@ -25,6 +26,10 @@ def cartpole_repo(tmp_path_factory, repo_root, _default_params) -> Path:
         pytest.skip(f"{ENV}/models/policy.pt is not there yet")
     repo = copy_project(repo_root, tmp_path_factory.mktemp("env") / "repo")
     (repo / "params.yaml").write_text(yaml.safe_dump(tiny_params(_default_params)))
+    # The suite's params add the library detectors to the list: keep the tiny one.
+    suite = yaml.safe_load((repo / "pipeline" / "params.yaml").read_text())
+    suite.pop("benchmark")
+    (repo / "pipeline" / "params.yaml").write_text(yaml.safe_dump(suite, sort_keys=False))
     local = yaml.safe_load((repo / ENV / "params.yaml").read_text())
     local["env"] = {**local.get("env", {}), "T": 60, "onset": None}
     (repo / ENV / "params.yaml").write_text(yaml.safe_dump(local, sort_keys=False))
