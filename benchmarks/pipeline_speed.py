@@ -147,10 +147,10 @@ def knob_runs(repo: Path) -> dict[str, tuple[float, int]]:
 
 
 def main() -> None:
-    from oodrl.pipeline import pipeline_dirs
+    from oodrl.suite_run import suite_pipelines
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    every = [d.relative_to(ROOT).as_posix() or "." for d in pipeline_dirs(ROOT)]
+    every = suite_pipelines(ROOT)
     parser.add_argument("--pipelines", nargs="+", default=every, help="default: the suite")
     parser.add_argument("--no-knobs", action="store_true", help="skip the knob re-runs")
     parser.add_argument(

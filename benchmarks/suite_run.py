@@ -64,10 +64,10 @@ def on_local_ray_cluster(repo: Path, nodes: int, remote: Path) -> tuple[float, o
 
 
 def main() -> None:
-    from oodrl.pipeline import pipeline_dirs
+    from oodrl.suite_run import suite_pipelines
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    every = [d.relative_to(ROOT).as_posix() or "." for d in pipeline_dirs(ROOT)]
+    every = suite_pipelines(ROOT)
     parser.add_argument("--pipelines", nargs="+", default=every, help="default: the suite")
     parser.add_argument("--params", type=Path, default=ROOT / "ci" / "params.yaml")
     parser.add_argument("--detectors", nargs="+", help="benchmark.detectors (default: params')")

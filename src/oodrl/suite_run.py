@@ -71,10 +71,18 @@ class Remote:
 
 
 def suite_pipelines(root: Path) -> list[str]:
-    """Every pipeline of the suite, relative to the root ('.' is the root's own)."""
-    from oodrl.pipeline import pipeline_dirs
+    """The root's pipeline (the paper's default) and every run the suite's leaderboard reads (the
+    pipelines whose results its generated dvc.yaml depends on), relative to the root ('.' is the
+    root's own). A pipeline `oodrl new` made, or a policy not yet in `oodrl.suite.MORE_POLICIES`,
+    is not the suite's: build it with `dvc repro` in its directory."""
+    import yaml
 
-    return [d.relative_to(root).as_posix() or "." for d in pipeline_dirs(root)]
+    from oodrl.pipeline import SUITE_DIR
+
+    stage = yaml.safe_load((root / SUITE_DIR / "dvc.yaml").read_text())["stages"]["leaderboard"]
+    results = [Path(d) for d in stage["deps"] if d.endswith("/reports/results.yaml")]
+    runs = {(root / SUITE_DIR / d).resolve().parent.parent.relative_to(root) for d in results}
+    return [".", *sorted(r.as_posix() for r in runs)]
 
 
 # -- one task: one pipeline in its own clone ----------------------------------------------------
