@@ -24,7 +24,7 @@ def _tiny(params: dict) -> None:
         params["tiers"].update(grid=[0.5, 1.0], episodes=2, n_calibration=19)
 
 
-def _root_detectors(params: dict) -> None:
+def root_detectors_only(params: dict) -> None:
     """The suite's params add the library detectors to the root's list: keep the root's."""
     params.pop("benchmark", None)
 
@@ -36,7 +36,8 @@ def _tiny_environment(params: dict) -> None:
 def two_environment_suite(source: Path, commit: str, dest: Path) -> Path:
     """`commit` of `source` in `dest`: root and CartPole, one detector and one injector, T=60,
     a handful of episodes."""
-    return suite_copy(source, commit, dest, PIPELINES, _tiny, _tiny_environment, _root_detectors)
+    edits = (_tiny, _tiny_environment, root_detectors_only)
+    return suite_copy(source, commit, dest, PIPELINES, *edits)
 
 
 def serial_suite(repo: Path) -> list[str]:

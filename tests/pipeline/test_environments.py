@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 import yaml
 from conftest import DETECTORS, INJECTORS, detector_stages, tiny_params
+from suite_repo import root_detectors_only
 
 from oodrl.store import read_trajectories
 from oodrl.testing.pipeline import copy_project, repro, run
@@ -26,9 +27,8 @@ def cartpole_repo(tmp_path_factory, repo_root, _default_params) -> Path:
         pytest.skip(f"{ENV}/models/policy.pt is not there yet")
     repo = copy_project(repo_root, tmp_path_factory.mktemp("env") / "repo")
     (repo / "params.yaml").write_text(yaml.safe_dump(tiny_params(_default_params)))
-    # The suite's params add the library detectors to the list: keep the tiny one.
     suite = yaml.safe_load((repo / "pipeline" / "params.yaml").read_text())
-    suite.pop("benchmark")
+    root_detectors_only(suite)
     (repo / "pipeline" / "params.yaml").write_text(yaml.safe_dump(suite, sort_keys=False))
     local = yaml.safe_load((repo / ENV / "params.yaml").read_text())
     local["env"] = {**local.get("env", {}), "T": 60, "onset": None}
