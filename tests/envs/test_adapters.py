@@ -119,6 +119,31 @@ def test_acrobot_angle_increments_go_the_short_way_round():
     env.close()
 
 
+def test_acrobot_keeps_its_bounds_under_a_scaled_increment():
+    """The dynamics faults write `before + factor · increment`; Acrobot holds the result to its
+    own step's bounds, so a long episode at the largest factor stays finite (it used to grow to
+    infinity and hang in Gymnasium's angle wrapping)."""
+    from oodrl.injectors.online import ScalingFault, _Constant
+
+    adapter = adapter_of("Acrobot-v1")
+    env, handle, _ = live(adapter, seed=0, steps=1)
+    fault, unwrapped = ScalingFault(_Constant(2.5)), env.unwrapped
+    bounds = np.array([math.pi, math.pi, unwrapped.MAX_VEL_1, unwrapped.MAX_VEL_2])
+    for t, action in enumerate(np.random.default_rng(0).integers(0, 3, size=500)):
+        fault.before_step(t, np.asarray(action), handle)
+        observation, _, terminated, truncated, _ = env.step(int(action))
+        fault.after_step(t, observation, np.asarray(action), handle)
+        assert np.all(np.abs(handle.read_state()) <= bounds)
+        if terminated or truncated:
+            env.reset(seed=t)
+    written = handle.write_state(np.array([7.0, -4.0, 100.0, -100.0]))
+    np.testing.assert_allclose(
+        handle.read_state(), [7 - 2 * math.pi, 2 * math.pi - 4, *bounds[2:] * [1, -1]]
+    )
+    np.testing.assert_array_equal(written, unwrapped._get_ob())
+    env.close()
+
+
 @pytest.mark.parametrize("env_id", ["HalfCheetah-v5", "Hopper-v5"])
 def test_mujoco_state_names_are_the_joints(env_id):
     env, handle, _ = live(adapter_of(env_id), seed=0, steps=1)
