@@ -25,7 +25,12 @@ PIPELINE_DIRS: dict[str, Path] = {
 #: Each environment's further policies (SPEC §16), trained like its first from training seeds
 #: 1, 2, … and each built by a pipeline of its own: (environment id, policy) → pipeline
 #: directory. An environment's policy "0" is its PIPELINE_DIRS entry.
-MORE_POLICIES: dict[tuple[str, str], Path] = {}
+MORE_POLICIES: dict[tuple[str, str], Path] = {
+    ("CartPole-v1", "1"): Path("pipeline/cartpole_policy1"),
+    ("CartPole-v1", "2"): Path("pipeline/cartpole_policy2"),
+    ("Acrobot-v1", "1"): Path("pipeline/acrobot_policy1"),
+    ("Acrobot-v1", "2"): Path("pipeline/acrobot_policy2"),
+}
 
 #: Mean return over 30 held-out episodes a committed policy must reach (SPEC §11).
 POLICY_BARS: dict[str, float] = {

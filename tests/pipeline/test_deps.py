@@ -29,7 +29,7 @@ from oodrl.pipeline import (
     write,
     write_stamps,
 )
-from oodrl.suite import PIPELINE_DIRS
+from oodrl.suite import MORE_POLICIES, PIPELINE_DIRS, suite_runs
 
 SOURCE_ROOT = Path(oodrl.__file__).resolve().parents[2]  # the checkout the stages import
 
@@ -288,11 +288,12 @@ def test_stage_commands_import_only_modules_their_stamps_list(built_repo):
     )
 
 
-def test_the_suite_pipeline_reads_every_environments_results(repo_root):
+def test_the_suite_pipeline_reads_every_runs_results(repo_root):
     stage = yaml.safe_load((repo_root / "pipeline/suite/dvc.yaml").read_text())["stages"]
     deps = stage["leaderboard"]["deps"]
-    results = [d for d in deps if d.endswith("reports/results.yaml")]
-    assert len(results) == len(PIPELINE_DIRS)
+    results = {d for d in deps if d.endswith("reports/results.yaml")}
+    runs = {f"../{directory.name}/reports/results.yaml" for directory in suite_runs().values()}
+    assert results == runs and len(runs) == len(PIPELINE_DIRS) + len(MORE_POLICIES)
     assert "../../src/oodrl/metrics/leaderboard.py" in deps
     root_stages = yaml.safe_load((repo_root / "dvc.yaml").read_text())["stages"]
     assert "leaderboard" not in root_stages  # the root `dvc repro` stays the paper default
