@@ -137,6 +137,24 @@ def test_ranking_stability_across_policies():
     assert one.policies == ("0",) and one.kendall_tau == {} and one.mean_tau is None
 
 
+def test_ranking_stability_compares_policies_on_the_tasks_they_share():
+    """An environment with one policy must not enter the comparison: policy 0's ranking on E
+    and F against policy 1's on E alone would measure F, not the policies."""
+    cells = {}
+    for f in "ab":
+        cells[Cell("E", "0", f, "mild")] = {"A": [0.9], "B": [0.5]}
+        cells[Cell("E", "1", f, "mild")] = {"A": [0.8], "B": [0.6]}
+        cells[Cell("F", "0", f, "mild")] = {"A": [0.0], "B": [1.0]}
+    cells[Cell("E", "1", "c", "mild")] = {"A": [0.0], "B": [1.0]}  # policy 1 alone reached c
+    stability = ranking_stability(cells)
+    assert stability.tasks == (("E", "a", "mild"), ("E", "b", "mild"))
+    assert stability.winners == {"0": "A", "1": "A"}
+    assert stability.kendall_tau == pytest.approx({("0", "1"): 1.0})
+    apart = {c: v for c, v in cells.items() if c.environment == "F" or c.policy == "1"}
+    alone = ranking_stability(apart)
+    assert alone.tasks == () and alone.kendall_tau == {} and alone.mean_tau is None
+
+
 def test_trivial_flags_rule():
     cells = {
         Cell("E", "0", "a", "mild"): {"A": [0.6], "time_index": [0.95, 0.93]},

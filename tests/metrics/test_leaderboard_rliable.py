@@ -192,8 +192,10 @@ def test_committed_results_reshaped_into_runs_agree_with_rliable(rly, numpy_glob
         scores, lambda x: np.array([metrics.aggregate_iqm(x), metrics.aggregate_mean(x)]), reps=2000
     )
     for d in detectors:
-        assert board.iqm[d].value == metrics.aggregate_iqm(scores[d])
-        assert board.mean[d].value == metrics.aggregate_mean(scores[d])
+        # Equal up to the last bits: rliable's scipy trim_mean sums the 1,400-odd values in
+        # another order than oodrl's sorted-slice mean (1 ulp apart on the current results).
+        assert board.iqm[d].value == pytest.approx(metrics.aggregate_iqm(scores[d]), rel=1e-13)
+        assert board.mean[d].value == pytest.approx(metrics.aggregate_mean(scores[d]), rel=1e-13)
         assert_within_mc(board.iqm[d], intervals[d][0, 0], intervals[d][1, 0])
         assert_within_mc(board.mean[d], intervals[d][0, 1], intervals[d][1, 1])
     a, b = board.ranked()[:2]

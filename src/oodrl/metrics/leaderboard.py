@@ -330,9 +330,14 @@ def _bootstrap_name(runs: Sequence[int]) -> str:
 @dataclass(frozen=True)
 class Stability:
     """How stable the ranking is across policies (SPEC §16): each policy's own ranking by the
-    IQM of its cells' scores, its winner, and Kendall's τ-b between every two policies."""
+    IQM of its scores on the shared tasks, its winner, and Kendall's τ-b between every two
+    policies. The shared tasks are the (environment, fault, tier) that every policy has a cell
+    of: a policy's ranking over other environments than another's would measure the
+    environments, not the policies (most environments have one policy)."""
 
     policies: tuple[str, ...]
+    #: The tasks every policy has a cell of, sorted.
+    tasks: tuple[Task, ...]
     iqm: dict[str, dict[str, float]]
     winners: dict[str, str]
     #: (p, q) → Kendall's τ between the detectors' IQMs under p and under q (p before q).
@@ -345,14 +350,21 @@ class Stability:
 
 
 def ranking_stability(cells: CellValues) -> Stability:
-    """Per policy, the detectors' IQM over that policy's cells, the winner, and Kendall's τ."""
+    """Per policy, the detectors' IQM over the shared tasks, the winner, and Kendall's τ."""
     from scipy.stats import kendalltau
 
-    policies = tuple(sorted({Cell(*c).policy for c in cells}, key=policy_key))
+    by_policy: dict[str, dict[Task, Mapping[str, Sequence[float]]]] = {}
+    for cell, values in cells.items():
+        environment, policy, fault, tier = Cell(*cell)
+        by_policy.setdefault(policy, {})[(environment, fault, tier)] = values
+    policies = tuple(sorted(by_policy, key=policy_key))
+    tasks = tuple(sorted(set.intersection(*(set(by_policy[p]) for p in policies))))
     detectors = sorted(next(iter(cells.values())))
+    if not tasks:
+        return Stability(policies, tasks, {}, {}, {})
     iqm = {}
     for p in policies:
-        mine = [values for cell, values in cells.items() if Cell(*cell).policy == p]
+        mine = [by_policy[p][task] for task in tasks]
         scores = np.array([[np.mean(values[d]) for values in mine] for d in detectors])
         iqm[p] = {d: float(interquartile_mean(scores[i])) for i, d in enumerate(detectors)}
     winners = {p: min(detectors, key=lambda d, p=p: (-iqm[p][d], d)) for p in policies}
@@ -363,7 +375,7 @@ def ranking_stability(cells: CellValues) -> Stability:
         for i, p in enumerate(policies)
         for q in policies[i + 1 :]
     }
-    return Stability(policies, iqm, winners, kendall)
+    return Stability(policies, tasks, iqm, winners, kendall)
 
 
 def trivial_flags(

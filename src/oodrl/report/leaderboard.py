@@ -274,6 +274,14 @@ def _stability_lines(board: Board, metric: str, tier: str) -> list[str]:
     lines = ["### Ranking stability across policies", ""]
     if len(stability.policies) == 1:
         return [*lines, f"One policy (policy {stability.policies[0]}): nothing to compare.", ""]
+    environments = sorted({environment for environment, _, _ in stability.tasks})
+    if not environments:
+        return [*lines, "No (environment, fault, tier) has a cell of every policy.", ""]
+    lines += [
+        f"Over the {len(stability.tasks)} (environment, fault, tier) tasks every policy has a "
+        f"cell of ({', '.join(environments)}): each policy ranked on the same tasks.",
+        "",
+    ]
     rows = [
         [f"policy {p}", stability.winners[p], f"{stability.iqm[p][stability.winners[p]]:.3f}"]
         for p in stability.policies
@@ -422,6 +430,7 @@ def board_mapping(
         }  # fmt: skip
         entry["stability"] = {
             "policies": list(stability.policies),
+            "shared_tasks": len(stability.tasks),
             "winners": stability.winners,
             "iqm": {p: {d: round(v, 6) for d, v in r.items()} for p, r in stability.iqm.items()},
             "kendall_tau": {f"{p}-{q}": round(t, 6) for (p, q), t in stability.kendall_tau.items()},
