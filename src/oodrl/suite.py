@@ -30,6 +30,8 @@ MORE_POLICIES: dict[tuple[str, str], Path] = {
     ("CartPole-v1", "2"): Path("pipeline/cartpole_policy2"),
     ("Acrobot-v1", "1"): Path("pipeline/acrobot_policy1"),
     ("Acrobot-v1", "2"): Path("pipeline/acrobot_policy2"),
+    ("LunarLander-v3", "1"): Path("pipeline/lunar_lander_policy1"),
+    ("LunarLander-v3", "2"): Path("pipeline/lunar_lander_policy2"),
 }
 
 #: Mean return over 30 held-out episodes a committed policy must reach (SPEC §11).
