@@ -9,7 +9,8 @@ Code deps (SPEC §12) are code stamps: the check_params stage depends on the pac
 as one directory (and on plugin files params names) and writes, per stage kind, a stamp
 `data/code/<verb>[-<component>].txt` listing the sha256 of every file that kind's command can
 execute; each stage depends on its stamp only. A stamp changes exactly when a file it lists
-does, so a code edit re-runs exactly the stages that can execute it, and dvc.lock stays small.
+does (for cli.py: when the code its verb runs there does), so a code edit re-runs exactly the
+stages that can execute it, and dvc.lock stays small.
 
 A command's files are a static walk of every `import` statement (nested ones too: oodrl
 imports lazily) and `module:Class` string from its verb in cli.py, plus the modules of the
@@ -145,12 +146,26 @@ class Project:
 
     def command_closure(self, verb: str) -> set[Path]:
         """The project files the CLI command `oodrl <verb>` can execute (components aside)."""
+        package = CLI_MODULE.rpartition(".")[0]
+        nodes = (node for top in _command_nodes(self.cli_tree(), verb) for node in ast.walk(top))
+        names = imported_modules(nodes, package)
+        return self.closure([CLI_MODULE], known={CLI_MODULE: names})
+
+    def command_source(self, verb: str) -> str:
+        """The cli.py code `oodrl <verb>` runs, in file order: its stamp hashes this instead of
+        the whole file, so editing another command re-runs none of this verb's stages."""
+        source = self.cli_file().read_text()
+        nodes = sorted(_command_nodes(self.cli_tree(), verb), key=lambda node: node.lineno)
+        return "\n".join(ast.get_source_segment(source, node, padded=True) or "" for node in nodes)
+
+    def cli_file(self) -> Path:
         cli = self.module_file(CLI_MODULE)
         if cli is None:
             raise ConfigError(f"{self.root}: no {CLI_MODULE} module under {CODE_DIR}/.")
-        package = CLI_MODULE.rpartition(".")[0]
-        names = imported_modules(_command_nodes(_parse(cli), verb), package)
-        return self.closure([CLI_MODULE], known={CLI_MODULE: names})
+        return cli
+
+    def cli_tree(self) -> ast.Module:
+        return _parse(self.cli_file())
 
 
 def _with_parents(module: str) -> list[str]:
@@ -225,16 +240,19 @@ def _called_name(call: ast.Call) -> str | None:
     return None
 
 
-def _command_nodes(tree: ast.Module, verb: str) -> Iterator[ast.AST]:
-    """The nodes of cli.py that `oodrl <verb>` runs: module-level code, the verb's function
-    and every module-level function these reach by name (other verbs' bodies do not run)."""
+def _command_nodes(tree: ast.Module, verb: str) -> list[ast.AST]:
+    """The top-level statements of cli.py that `oodrl <verb>` runs: module-level code, the
+    app's callbacks (they run before every command), the verb's function and every module-level
+    function these reach by name. Other commands' bodies do not run; their registration does, at
+    import, but it cannot change what this verb computes (and if it fails, every command fails).
+    """
     functions = {
         node.name: node
         for node in tree.body
         if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef)
     }
     roots: list[ast.AST] = [node for node in tree.body if node not in functions.values()]
-    roots += [decorator for node in functions.values() for decorator in node.decorator_list]
+    roots += [node for node in functions.values() if _is_callback(node)]
     roots.append(_verb_function(functions.values(), verb))
     reached: list[ast.AST] = []
     pending, seen = list(roots), set()
@@ -247,8 +265,14 @@ def _command_nodes(tree: ast.Module, verb: str) -> Iterator[ast.AST]:
         for child in ast.walk(node):
             if isinstance(child, ast.Name) and child.id in functions:
                 pending.append(functions[child.id])
-    for node in reached:
-        yield from ast.walk(node)
+    return reached
+
+
+def _is_callback(function: ast.FunctionDef | ast.AsyncFunctionDef) -> bool:
+    """`@app.callback()`: typer runs it before every command."""
+    return any(
+        isinstance(d, ast.Call) and _called_name(d) == "callback" for d in function.decorator_list
+    )
 
 
 def _verb_function(
@@ -326,10 +350,16 @@ def kind_files(project: Project, verb: str, name: str | None, params: dict) -> s
     return project.command_closure(verb) | project.closure(component_modules(verb, name, params))
 
 
-def stamp_text(project: Project, files: set[Path]) -> str:
-    """`sha256  path` per file, sorted by path: content only, so the stamp is reproducible."""
+def stamp_text(project: Project, files: set[Path], verb: str) -> str:
+    """`sha256  path` per file, sorted by path: content only, so the stamp is reproducible.
+    cli.py's line hashes only the code `verb` runs there (`Project.command_source`)."""
+    cli = project.cli_file()
+
+    def content(file: Path) -> bytes:
+        return project.command_source(verb).encode() if file == cli else file.read_bytes()
+
     paths = sorted((project.relative(f), f) for f in files)
-    return "".join(f"{hashlib.sha256(f.read_bytes()).hexdigest()}  {p}\n" for p, f in paths)
+    return "".join(f"{hashlib.sha256(content(f)).hexdigest()}  {p}\n" for p, f in paths)
 
 
 def plugin_files(project: Project, params: dict[str, Any]) -> set[Path]:
@@ -406,7 +436,7 @@ def write_stamps(pipeline_path: Path, params_path: Path, code_dir: Path) -> list
     written = []
     for verb, name in sorted(kinds, key=str):
         path = code_dir / Path(stamp_path(verb, name)).name
-        text = stamp_text(project, kind_files(project, verb, name, params))
+        text = stamp_text(project, kind_files(project, verb, name, params), verb)
         if not path.is_file() or path.read_text() != text:
             atomic_write_text(path, text)
         written.append(path)

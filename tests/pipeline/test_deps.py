@@ -26,6 +26,7 @@ from oodrl.pipeline import (
     kind_files,
     rendered,
     stage_kind,
+    stamp_text,
     write,
     write_stamps,
 )
@@ -159,6 +160,49 @@ def test_environment_stamps_name_its_adapter(env_project):
     assert "  ../../src/oodrl/envs/classic_control.py\n" in collect
     assert "lunar_lander.py" not in collect
     assert len(stamps) == len({p.name for p in stamps})
+
+
+def _insert_statement(cli: Path, function: str | None) -> None:
+    """Add a statement to one function's body of cli.py, or at module level (None)."""
+    import ast
+
+    lines = cli.read_text().splitlines(keepends=True)
+    if function is None:
+        lines.append("EDITED = True\n")
+    else:
+        tree = ast.parse("".join(lines))
+        (node,) = [n for n in tree.body if getattr(n, "name", None) == function]
+        lines.insert(node.body[0].end_lineno, "    assert True  # an edit\n")
+    cli.write_text("".join(lines))
+
+
+def test_a_cli_edit_restamps_only_the_verbs_that_run_it(tmp_path, repo_root):
+    """cli.py's stamp line hashes the code its verb runs there (SPEC §12): editing one command
+    leaves the other verbs' stamps, and so their stages, alone; module-level code is everyone's."""
+    shutil.copytree(repo_root / "src", tmp_path / "src", ignore=shutil.ignore_patterns("*.pyc"))
+    params = yaml.safe_load((repo_root / "params.yaml").read_text())
+    project = Project(tmp_path)
+    kinds = [("fit", "kde_density"), ("score", "kde_density"), ("metrics", None),
+             ("collect-ood", "gaussian_state_noise"), ("impact", "stuck_actuator")]  # fmt: skip
+
+    def stamps() -> dict[str, str]:
+        return {
+            verb: stamp_text(project, kind_files(project, verb, name, params), verb)
+            for verb, name in kinds
+        }
+
+    cli = tmp_path / "src" / "oodrl" / "cli.py"
+    before = stamps()
+    _insert_statement(cli, "monitor")  # a command no stage runs
+    assert stamps() == before
+    _insert_statement(cli, "fit")
+    after = stamps()
+    assert [verb for verb in before if after[verb] != before[verb]] == ["fit"]
+    _insert_statement(cli, "_load")  # a helper every stage verb calls
+    assert all(stamps()[verb] != after[verb] for verb in before)
+    after = stamps()
+    _insert_statement(cli, None)
+    assert all(stamps()[verb] != after[verb] for verb in before)
 
 
 # -- the closure -----------------------------------------------------------------------------
