@@ -145,7 +145,7 @@ def root(tmp_path: Path, repo_root: Path) -> Path:
     [
         (["x", "--env", "MountainCarContinuos-v0", "--train", "ppo"], "--env: Unknown environment"),
         (["x", "--env", "CarRacing-v3", "--train", "ppo"], "flat Box observation"),
-        (["x", "--env", "MountainCar-v0"], "exactly one of --policy PATH and --train"),
+        (["x", "--env", "MountainCar-v0"], "exactly one of --policy PATH, --train"),
         (["X-1", "--env", "MountainCar-v0", "--train", "ppo"], "not a pipeline name"),
         (["x", "--env", "MountainCar-v0", "--train", "sac"], "SAC needs continuous actions"),
         (["x", "--env", "MountainCar-v0", "--train", "a3c"], "--train: 'a3c'; allowed"),

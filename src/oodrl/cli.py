@@ -313,7 +313,12 @@ def show(
 @command("new")
 def new(
     name: Annotated[str, typer.Argument(help="the pipeline's directory: pipeline/NAME")],
-    env: Annotated[str, typer.Option(help="any Gymnasium id with a flat Box observation")],
+    env: Annotated[
+        str | None,
+        typer.Option(
+            help="any Gymnasium id with a flat Box observation (--dataset: the one it names)"
+        ),
+    ] = None,
     policy: Annotated[
         str | None,
         typer.Option(
@@ -323,6 +328,13 @@ def new(
     ] = None,
     train: Annotated[
         str | None, typer.Option(help="train one instead with SB3: sac, ppo or dqn")
+    ] = None,
+    dataset: Annotated[
+        str | None,
+        typer.Option(
+            help="recorded data instead of an agent: a Minari dataset's directory or local id "
+            "(post-hoc faults only)"
+        ),
     ] = None,
     steps: Annotated[
         int, typer.Option(min=1, help="--train's budget in environment steps")
@@ -334,12 +346,14 @@ def new(
     seed: Annotated[int, typer.Option(min=0, help="--train's seed")] = 0,
     root: Annotated[Path, typer.Option(help="the project root")] = Path("."),
 ) -> None:
-    """Make pipeline/NAME for your agent in any Gymnasium environment (SPEC §18)."""
+    """Make pipeline/NAME for your agent in any Gymnasium environment, or for recorded data
+    (SPEC §18)."""
     from oodrl.new import new_pipeline, summary
 
     made = new_pipeline(
-        root, name, env, policy=policy, train=train, steps=steps, T=T, episodes=episodes, seed=seed
-    )
+        root, name, env, policy=policy, train=train, dataset=dataset, steps=steps, T=T,
+        episodes=episodes, seed=seed,
+    )  # fmt: skip
     typer.echo(summary(made, root))
 
 
@@ -385,6 +399,25 @@ def collect_eval(
     config = _load(params)
     with _stage("collect_eval"):
         run(config, policy, out)
+
+
+@command("import-dataset")
+def import_dataset(
+    split: Annotated[str, typer.Argument(help="id (the ID set) or eval (the evaluation set)")],
+    dataset: Annotated[Path, PathOption(help="the Minari dataset's copy: pipeline/NAME/dataset")],
+    out: Annotated[Path, PathOption()],
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stages collect_id and collect_eval of a pipeline of recorded data (SPEC §18): the clean
+    ID or evaluation streams, cut from a Minari dataset's episodes."""
+    from oodrl.recorded import SPLITS
+    from oodrl.stages.recorded import import_clean_set
+
+    if split not in SPLITS:
+        raise ConfigError(f"import-dataset: {split!r} is not a set; allowed: {', '.join(SPLITS)}.")
+    config = _load(params)
+    with _stage(f"collect_{split}"):
+        import_clean_set(config, split, dataset, out)
 
 
 def _known(name: str, names: list[str], key: str) -> None:

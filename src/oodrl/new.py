@@ -8,6 +8,9 @@ action predicate of `action_conditioned_dynamics` read from the policy's own cle
 `faults.yaml` (each fault left out, and why), and its DVC files, written by the generator every
 pipeline comes from (`oodrl.pipeline`). `cd pipeline/NAME && dvc repro` then runs the protocol.
 
+`--dataset PATH_OR_ID` makes a pipeline of recorded data instead (`oodrl.recorded`): a Minari
+dataset's episodes are its clean streams, so it has no policy and runs the post-hoc faults only.
+
 Everything is made in a staging folder beside it and moved into place once it validates, so a
 refused command leaves nothing behind.
 """
@@ -18,6 +21,8 @@ import json
 import os
 import re
 import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -27,6 +32,7 @@ import numpy as np
 from oodrl.errors import ConfigError, ContractError, OodrlError
 
 if TYPE_CHECKING:
+    from oodrl.config import Params
     from oodrl.core.adapter import EnvironmentAdapter
 
 NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]*")
@@ -48,61 +54,167 @@ class NewPipeline:
     T: int
     supported: tuple[str, ...]
     left_out: dict[str, str]
-    policy_report: dict[str, Any]
+    policy_report: dict[str, Any] | None
+    #: A pipeline of recorded data: what its dataset holds (None for an agent's pipeline).
+    recording: str | None = None
 
 
 def new_pipeline(
     root: Path,
     name: str,
-    env_id: str,
+    env_id: str | None = None,
     *,
     policy: str | None = None,
     train: str | None = None,
+    dataset: str | None = None,
     steps: int = 50_000,
     T: int | None = None,  # noqa: N803 - the protocol's name
     episodes: int = 10,
     seed: int = 0,
 ) -> NewPipeline:
     """Make `root/pipeline/NAME/` (see the module docstring); a one-line error otherwise."""
-    from oodrl.config import read_params_data
-    from oodrl.pipeline import ENVIRONMENTS_DIR, PARAMS_FILE
+    from oodrl.pipeline import ENVIRONMENTS_DIR
 
     directory = root / ENVIRONMENTS_DIR / name
     _check_name(name, directory)
-    if (policy is None) == (train is None):
-        raise ConfigError("oodrl new: give exactly one of --policy PATH and --train sac|ppo|dqn.")
+    if sum(source is not None for source in (policy, train, dataset)) != 1:
+        raise ConfigError(
+            "oodrl new: give exactly one of --policy PATH, --train sac|ppo|dqn and "
+            "--dataset PATH_OR_ID."
+        )
+    if dataset is not None:
+        return _recorded_pipeline(root, directory, dataset, env_id, T)
+    if env_id is None:
+        raise ConfigError("--env: name the agent's environment (a Gymnasium id).")
     adapter = _adapter(env_id)
     T = T or episode_length(env_id)  # noqa: N806
-    shared = read_params_data(root / PARAMS_FILE)
-    directory.parent.mkdir(parents=True, exist_ok=True)
-    staging = directory.with_name(f".{name}.new-{os.getpid()}")
-    staging.mkdir()
-    try:
+    shared = _shared_params(root)
+    with _staged(directory, root) as staging:
         models = staging / "models"
         models.mkdir()
         report = _make_policy(
             policy, train, env_id, models, steps=steps, episodes=episodes, seed=seed
         )
+        from oodrl.envs.collect import collect
         from oodrl.policies.load import load_policy
 
-        support = fault_support(adapter, list(shared["benchmark"]["injectors"]))
-        blocks, predicate_reason = _injector_blocks(adapter, load_policy(models / "policy.pt"), T)
+        support = fault_support(adapter, list(shared.benchmark.injectors))
+        clean = collect(adapter, load_policy(models / "policy.pt"), [EVALUATION_SEED], T)
+        blocks, predicate_reason = injector_blocks(adapter, clean.actions[0], T)
         if predicate_reason and PREDICATE_FAULT in support and support[PREDICATE_FAULT] is None:
             support[PREDICATE_FAULT] = predicate_reason
-        (staging / PARAMS_FILE).write_text(
-            params_text(name, env_id, T, report["train_config"], support, blocks)
+        note = "imported by `oodrl new`: kept, never trained here"
+        params = params_text(name, env_id, T, report["train_config"], support, blocks, note)
+        _write_params(staging, params, faults_text(env_id, support))
+    return NewPipeline(directory, env_id, T, *_split(support), report)
+
+
+def _recorded_pipeline(
+    root: Path,
+    directory: Path,
+    dataset: str,
+    env_id: str | None,
+    T: int | None,  # noqa: N803
+) -> NewPipeline:
+    """A pipeline of recorded data (`oodrl.recorded`): the dataset copied in, its params
+    naming it (`policy.train`: source, id, sha256), the post-hoc faults only."""
+    from oodrl import recorded
+
+    data_dir = recorded.locate(dataset)
+    data = recorded.load(data_dir)
+    dataset_id = data.spec.dataset_id
+    env_id = _recorded_env(dataset_id, recorded.recorded_env_id(data), env_id)
+    adapter = _adapter(env_id)
+    recorded.check_environment(data, adapter)
+    T = T or episode_length(env_id)  # noqa: N806
+    shared = _shared_params(root)
+    count = shared.data.n_id + shared.data.n_ood
+    try:
+        cut = recorded.streams(data, T, count)
+    except ConfigError as error:
+        raise ConfigError(f"--dataset: {error}") from None
+    support = {
+        name: None if shared.injector_class(name).mode == "posthoc" else recorded.NO_SIMULATOR
+        for name in shared.benchmark.injectors
+    }
+    if None not in support.values():
+        raise ConfigError(
+            f"--dataset: the shared benchmark.injectors ({', '.join(support)}) has no post-hoc "
+            "fault, the only kind a pipeline of recorded data runs."
         )
-        (staging / "faults.yaml").write_text(faults_text(env_id, support))
+    # The online faults' blocks are written although those faults are left out: check_params
+    # checks every block against the environment (the shared ones name LunarLander's actions).
+    blocks, _ = injector_blocks(adapter, cut.arrays["actions"][0], T)
+    train_config = {
+        "env_id": env_id,
+        "file": dataset_id,
+        "sha256": recorded.files_sha256(data_dir),
+        "source": recorded.SOURCE,
+    }
+    note = f"the recording (a {recorded.SOURCE}): no policy runs here"
+    params = params_text(directory.name, env_id, T, train_config, support, blocks, note,
+                         recording=dataset_id)  # fmt: skip
+    with _staged(directory, root) as staging:
+        recorded.copy(data_dir, staging / recorded.DATASET_DIR)
+        _write_params(staging, params, faults_text(env_id, support))
+    used = int(cut.seeds[-1] + cut.arrays["episode_index"][-1, -1]) + 1
+    recording = (
+        f"recorded data {dataset_id} ({data.total_episodes} episodes, {data.total_steps} steps; "
+        f"the first {used} make the {count} streams)"
+    )
+    return NewPipeline(directory, env_id, T, *_split(support), None, recording)
+
+
+def _recorded_env(dataset_id: str, recorded_on: str | None, env_id: str | None) -> str:
+    """The environment of a recorded pipeline: the one the dataset names, or --env."""
+    if recorded_on is None and env_id is None:
+        raise ConfigError(
+            f"--env: {dataset_id} records no environment (env_spec); name the one it was "
+            "recorded on (a Gymnasium id)."
+        )
+    if recorded_on is not None and env_id is not None and env_id != recorded_on:
+        raise ConfigError(f"--env: {dataset_id} was recorded on {recorded_on}, not {env_id}.")
+    return env_id or recorded_on
+
+
+def _shared_params(root: Path) -> Params:
+    """The shared protocol new pipelines extend (structure checked; components later)."""
+    from oodrl.config import load_params
+    from oodrl.pipeline import PARAMS_FILE
+
+    return load_params(root / PARAMS_FILE, components=False)
+
+
+@contextmanager
+def _staged(directory: Path, root: Path) -> Iterator[Path]:
+    """A staging folder beside `directory` to fill; then its params are checked, it is moved
+    into place and given its DVC files. Any failure removes what was made."""
+    directory.parent.mkdir(parents=True, exist_ok=True)
+    staging = directory.with_name(f".{directory.name}.new-{os.getpid()}")
+    staging.mkdir()
+    made = staging
+    try:
+        yield staging
         _check(staging)
         staging.rename(directory)
-        staging = directory  # from here on, a failure removes the pipeline itself
+        made = directory  # from here on, a failure removes the pipeline itself
         _write_dvc_files(directory, root)
     except BaseException:
-        shutil.rmtree(staging, ignore_errors=True)
+        shutil.rmtree(made, ignore_errors=True)
         raise
+
+
+def _write_params(staging: Path, params: str, faults: str) -> None:
+    from oodrl.pipeline import PARAMS_FILE
+
+    (staging / PARAMS_FILE).write_text(params)
+    (staging / "faults.yaml").write_text(faults)
+
+
+def _split(support: dict[str, str | None]) -> tuple[tuple[str, ...], dict[str, str]]:
+    """The supported faults, and each left out with its reason."""
     supported = tuple(n for n, reason in support.items() if reason is None)
-    left_out = {n: reason for n, reason in support.items() if reason is not None}
-    return NewPipeline(directory, env_id, T, supported, left_out, report)
+    return supported, {n: reason for n, reason in support.items() if reason is not None}
 
 
 def fault_support(adapter: EnvironmentAdapter, injectors: list[str]) -> dict[str, str | None]:
@@ -208,13 +320,15 @@ def zipfile_like(path: Path) -> bool:
         return "data" in archive.namelist()
 
 
-def _injector_blocks(adapter, policy, T: int) -> tuple[dict[str, dict], str | None]:  # noqa: N803
-    """The injector parameters this environment and policy need, and why the action predicate
-    is left out (None when it is in)."""
+def injector_blocks(
+    adapter,
+    actions: np.ndarray,
+    T: int,  # noqa: N803
+) -> tuple[dict[str, dict], str | None]:
+    """The injector parameters this environment and the clean `actions` of one stream need,
+    and why the action predicate is left out (None when it is in)."""
     from oodrl.core.spec import default_onset
-    from oodrl.envs.collect import collect
 
-    actions = collect(adapter, policy, [EVALUATION_SEED], T).actions[0]
     ramp = max(1, round(RAMP_SHARE * (T - default_onset(T))))
     predicate, reason = action_predicate(adapter, actions)
     return {PREDICATE_FAULT: predicate, "gradual_drift": {"ramp_steps": ramp}}, reason
@@ -254,14 +368,26 @@ def params_text(
     train_config: dict[str, Any],
     support: dict[str, str | None],
     blocks: dict[str, dict],
+    train_note: str,
+    recording: str | None = None,
 ) -> str:
     """params.yaml of the new pipeline: only what differs from the shared protocol."""
     from oodrl.core.spec import default_onset
 
     supported = [n for n, reason in support.items() if reason is None]
+    if recording is None:
+        header = [
+            f"# {name}: {env_id}, made by `oodrl new` (SPEC §18): what differs from the shared",
+            "# ../../params.yaml. faults.yaml lists the faults left out and why.",
+        ]
+    else:
+        header = [
+            f"# {name}: recorded data, {recording} on {env_id}, made by `oodrl new --dataset`",
+            "# (SPEC §18): what differs from the shared ../../params.yaml. faults.yaml lists the",
+            "# faults left out and why.",
+        ]
     lines = [
-        f"# {name}: {env_id}, made by `oodrl new` (SPEC §18): what differs from the shared",
-        "# ../../params.yaml. faults.yaml lists the faults left out and why.",
+        *header,
         "extends: ../../params.yaml",
         "",
         "env:",
@@ -270,7 +396,7 @@ def params_text(
         "  onset: null".ljust(30) + f"# floor(T/3) = {default_onset(T)}",
         "",
         "policy:",
-        "  train:                      # imported by `oodrl new`: kept, never trained here",
+        "  train:".ljust(30) + f"# {train_note}",
         "    algorithm: imported",
         *(f"    {key}: {_flow(value)}" for key, value in sorted(train_config.items())),
         "",
@@ -324,12 +450,19 @@ def _write_dvc_files(directory: Path, root: Path) -> None:
 
 
 def summary(made: NewPipeline, root: Path) -> str:
-    """What `oodrl new` tells its user: where, what the policy scored, which faults run."""
-    evaluation = made.policy_report["evaluation"]
+    """What `oodrl new` tells its user: where, what the policy scored (or which data it has),
+    which faults run."""
     where = made.directory.relative_to(root)
+    if made.policy_report is None:
+        source = made.recording
+    else:
+        evaluation = made.policy_report["evaluation"]
+        source = (
+            f"policy mean return {evaluation['mean']:.1f} over {evaluation['episodes']} "
+            "held-out episodes"
+        )
     lines = [
-        f"{where}: {made.env_id}, T={made.T}; policy mean return {evaluation['mean']:.1f} over "
-        f"{evaluation['episodes']} held-out episodes",
+        f"{where}: {made.env_id}, T={made.T}; {source}",
         f"faults: {', '.join(made.supported)}",
         *(
             f"left out: {', '.join(n for n, r in made.left_out.items() if r == reason)}: {reason}"

@@ -446,6 +446,12 @@ def write_stamps(pipeline_path: Path, params_path: Path, code_dir: Path) -> list
 
 
 # -- rendering the template ----------------------------------------------------------------------
+#: How a pipeline of recorded data's DVC files differ from the templates' (SPEC §18).
+RECORDED_TEMPLATE = Path(__file__).with_name("recorded_pipeline.yaml")
+#: The policy file the template's commands read (a pipeline of recorded data has none).
+POLICY = "models/policy.pt"
+
+
 def _yaml():
     from ruamel.yaml import YAML
 
@@ -488,6 +494,8 @@ def rendered(pipeline_dir: Path, root: Path) -> str:
     params = read_params_data(params_path)
     document = _yaml().load(TEMPLATE.read_text())
     stages = document["stages"]
+    if is_recorded(params):
+        _as_recorded(stages)
     for _, body in _stage_bodies(stages):
         kind = stage_kind(body["cmd"])
         if kind is not None and kind[0] == CHECK_VERB:
@@ -510,6 +518,8 @@ def rendered_detector(pipeline_dir: Path, root: Path, detector: str) -> str:
     params = read_params_data(pipeline_dir / PARAMS_FILE)
     document = _yaml().load(DETECTOR_TEMPLATE.read_text())
     stages = document["stages"]
+    if is_recorded(params):
+        _as_recorded(stages)
     _add_stamps(stages)
     if pipeline_dir.resolve() != root.resolve():
         _read_merged_params(stages, params)
@@ -518,6 +528,76 @@ def rendered_detector(pipeline_dir: Path, root: Path, detector: str) -> str:
             stages[name]["foreach"] = _flow(_values(stages[name]["foreach"], params))
         body.insert(0, "wdir", WDIR)
     return _dumped(document).replace("${detector}", detector)
+
+
+def is_recorded(params: dict[str, Any]) -> bool:
+    """Whether params are a pipeline of recorded data's (`oodrl new --dataset`, SPEC §18)."""
+    from oodrl.recorded import SOURCE
+
+    train = (params.get("policy") or {}).get("train") or {}
+    return train.get("source") == SOURCE
+
+
+def _as_recorded(stages: dict[str, Any]) -> None:
+    """A template's stages as a pipeline of recorded data has them (RECORDED_TEMPLATE): the
+    stages that need a policy or a simulator dropped, the clean sets imported, and the policy
+    file named by the commands that still take one replaced."""
+    variant = _yaml().load(RECORDED_TEMPLATE.read_text())
+    kept = None
+    for name in list(stages):
+        if name in variant["drop"]:
+            if kept is not None:  # the comment before the next stage is kept, not this one's
+                _set_tail(stages[kept], _tail(stages[name]))
+            del stages[name]
+            continue
+        if name in variant["stages"]:
+            replacement = variant["stages"][name]
+            _set_tail(replacement, _tail(stages[name]))
+            stages[name] = replacement
+        kept = name
+    policy = str(variant["policy"])
+    for _, body in _stage_bodies(stages):
+        if POLICY in body["cmd"]:
+            body["cmd"] = _replaced(body["cmd"], POLICY, policy)
+        deps = body.get("deps") or []
+        for i, dep in enumerate(deps):
+            if dep == POLICY:
+                deps[i] = policy
+
+
+def _tail_holder(node) -> tuple[Any, Any]:
+    """(collection, key) of the last scalar under `node`: ruamel keeps the blank lines and
+    comments between one stage and the next there."""
+    from ruamel.yaml.comments import CommentedMap, CommentedSeq
+
+    while True:
+        key = list(node)[-1] if isinstance(node, CommentedMap) else len(node) - 1
+        if not isinstance(node[key], CommentedMap | CommentedSeq):
+            return node, key
+        node = node[key]
+
+
+def _tail(node) -> Any:
+    holder, key = _tail_holder(node)
+    return holder.ca.items.get(key)
+
+
+def _set_tail(node, comment: Any) -> None:
+    holder, key = _tail_holder(node)
+    if comment is None:
+        holder.ca.items.pop(key, None)
+    else:
+        holder.ca.items[key] = comment
+
+
+def _replaced(text: str, old: str, new: str) -> str:
+    """`text` with its one `old` replaced by `new`; a folded scalar keeps its line breaks."""
+    result = type(text)(text.replace(old, new))
+    folds = getattr(text, "fold_pos", None)
+    if folds:
+        at, shift = text.index(old), len(new) - len(old)
+        result.fold_pos = [p + shift if p > at else p for p in folds]
+    return result
 
 
 def _add_stamps(stages: dict[str, Any]) -> None:
