@@ -415,6 +415,8 @@ def _length_note(env_id: str, T: int) -> str:  # noqa: N803
     import gymnasium
 
     length = gymnasium.spec(env_id).max_episode_steps
+    if not length:
+        return "--T; episodes have no time limit"
     return "the episode length" if length == T else f"--T; episodes last up to {length}"
 
 
