@@ -319,6 +319,13 @@ def new(
             help="any Gymnasium id with a flat Box observation (--dataset: the one it names)"
         ),
     ] = None,
+    flatten: Annotated[
+        bool,
+        typer.Option(
+            help="wrap --env in gymnasium.wrappers.FlattenObservation (Dict, Tuple, … "
+            "observations); params name it FlattenObservation(ID)"
+        ),
+    ] = False,
     policy: Annotated[
         str | None,
         typer.Option(
@@ -351,8 +358,8 @@ def new(
     from oodrl.new import new_pipeline, summary
 
     made = new_pipeline(
-        root, name, env, policy=policy, train=train, dataset=dataset, steps=steps, T=T,
-        episodes=episodes, seed=seed,
+        root, name, env, policy=policy, train=train, dataset=dataset, flatten=flatten,
+        steps=steps, T=T, episodes=episodes, seed=seed,
     )  # fmt: skip
     typer.echo(summary(made, root))
 

@@ -8,6 +8,10 @@ action predicate of `action_conditioned_dynamics` read from the policy's own cle
 `faults.yaml` (each fault left out, and why), and its DVC files, written by the generator every
 pipeline comes from (`oodrl.pipeline`). `cd pipeline/NAME && dvc repro` then runs the protocol.
 
+`--flatten` wraps an environment with a Dict, Tuple or other non-flat observation in
+gymnasium.wrappers.FlattenObservation: params name it `FlattenObservation(<id>)`, so every stage
+makes the wrapped environment (`oodrl.envs`).
+
 `--dataset PATH_OR_ID` makes a pipeline of recorded data instead (`oodrl.recorded`): a Minari
 dataset's episodes are its clean streams, so it has no policy and runs the post-hoc faults only.
 
@@ -67,6 +71,7 @@ def new_pipeline(
     policy: str | None = None,
     train: str | None = None,
     dataset: str | None = None,
+    flatten: bool = False,
     steps: int = 50_000,
     T: int | None = None,  # noqa: N803 - the protocol's name
     episodes: int = 10,
@@ -83,9 +88,13 @@ def new_pipeline(
             "--dataset PATH_OR_ID."
         )
     if dataset is not None:
+        if flatten:
+            raise ConfigError("--flatten: it wraps an agent's environment, not a dataset.")
         return _recorded_pipeline(root, directory, dataset, env_id, T)
     if env_id is None:
         raise ConfigError("--env: name the agent's environment (a Gymnasium id).")
+    if flatten:
+        env_id = _flattened(env_id)
     adapter = _adapter(env_id)
     T = T or episode_length(env_id)  # noqa: N806
     shared = _shared_params(root)
@@ -261,11 +270,32 @@ def _adapter(env_id: str):
     return adapter
 
 
+def _flattened(env_id: str) -> str:
+    """The name of `env_id` with flattened observations; refused where they are flat."""
+    import gymnasium
+    from gymnasium import spaces
+
+    from oodrl.envs import ENVIRONMENTS, flattened
+
+    try:
+        ENVIRONMENTS.path(env_id)  # an unknown id: the usual line, naming the closest one
+    except OodrlError as error:
+        raise ConfigError(f"--env: {error}") from None
+    env = gymnasium.make(env_id)
+    space = env.observation_space
+    env.close()
+    if isinstance(space, spaces.Box) and len(space.shape) == 1:
+        raise ConfigError(f"--flatten: {env_id} observes a flat Box already; leave it out.")
+    return flattened(env_id)
+
+
 def episode_length(env_id: str) -> int:
     """The environment's registered episode length (max_episode_steps): the protocol's T."""
     import gymnasium
 
-    steps = gymnasium.spec(env_id).max_episode_steps
+    from oodrl.envs import gymnasium_id
+
+    steps = gymnasium.spec(gymnasium_id(env_id)).max_episode_steps
     if not steps:
         raise ConfigError(
             f"--env: {env_id} registers no episode length (max_episode_steps); give --T."
@@ -414,7 +444,9 @@ def params_text(
 def _length_note(env_id: str, T: int) -> str:  # noqa: N803
     import gymnasium
 
-    length = gymnasium.spec(env_id).max_episode_steps
+    from oodrl.envs import gymnasium_id
+
+    length = gymnasium.spec(gymnasium_id(env_id)).max_episode_steps
     if not length:
         return "--T; episodes have no time limit"
     return "the episode length" if length == T else f"--T; episodes last up to {length}"

@@ -2,9 +2,12 @@
 
 Registered lazily by Gymnasium id; `ENVIRONMENTS.get(id)()` is the adapter every collector,
 injector check and stage is handed. Any other id in gymnasium's registry gets the generic
-adapter (`oodrl.envs.generic`, SPEC §18).
+adapter (`oodrl.envs.generic`, SPEC §18), and so does `FlattenObservation(<id>)`: that
+environment with gymnasium.wrappers.FlattenObservation around it (`oodrl new --flatten`), so
+params name the wrapped environment and every stage makes the same one.
 """
 
+import re
 from typing import Any
 
 from oodrl.errors import RegistryError
@@ -12,6 +15,26 @@ from oodrl.registry import Registry, import_path
 
 GENERIC_ADAPTER = "oodrl.envs.generic:GenericAdapter"
 GENERIC_FACTORY = "oodrl.envs.generic:generic_adapter"
+_FLATTENED = re.compile(r"FlattenObservation\((?P<id>.+)\)")
+
+
+def flattened(env_id: str) -> str:
+    """The name of `env_id`'s environment with flattened observations."""
+    return f"FlattenObservation({env_id})"
+
+
+def gymnasium_id(name: str) -> str:
+    """The Gymnasium id an environment name makes: <id> of `FlattenObservation(<id>)`."""
+    match = _FLATTENED.fullmatch(name)
+    return match.group("id") if match else name
+
+
+def make(name: str, **kwargs: Any):
+    """`gymnasium.make` of an environment name, FlattenObservation around a flattened one's."""
+    import gymnasium
+
+    env = gymnasium.make(gymnasium_id(name), **kwargs)
+    return env if gymnasium_id(name) == name else gymnasium.wrappers.FlattenObservation(env)
 
 
 class EnvironmentRegistry(Registry):
@@ -22,7 +45,7 @@ class EnvironmentRegistry(Registry):
             return super().path(name)
         import gymnasium
 
-        if name not in gymnasium.registry:
+        if gymnasium_id(name) not in gymnasium.registry:
             try:
                 super().path(name)
             except RegistryError as error:

@@ -9,7 +9,8 @@ other environment gets a handle that refuses, naming why (`oodrl.new.fault_suppo
 fault left out with it).
 
 `generic_adapter(env_id)` is the adapter class of one id; `oodrl.envs.ENVIRONMENTS` hands it
-out for every Gymnasium id the suite does not register.
+out for every Gymnasium id the suite does not register, and for `FlattenObservation(<id>)`, whose
+observations gymnasium.wrappers.FlattenObservation flattens (`oodrl new --flatten`).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from oodrl.core.adapter import EnvironmentAdapter, SimulatorHandle
+from oodrl.envs import gymnasium_id
 from oodrl.errors import ContractError
 
 if TYPE_CHECKING:
@@ -35,7 +37,7 @@ def is_mujoco(env_id: str) -> bool:
     """Whether gymnasium's entry point of `env_id` is a MuJoCo environment (without making it)."""
     import gymnasium
 
-    entry = gymnasium.spec(env_id).entry_point
+    entry = gymnasium.spec(gymnasium_id(env_id)).entry_point
     return isinstance(entry, str) and entry.startswith("gymnasium.envs.mujoco")
 
 
@@ -68,7 +70,10 @@ class GenericAdapter(EnvironmentAdapter):
     env_id = ""
 
     def make(self) -> gym.Env:
-        env = super().make()
+        from oodrl.envs import make
+
+        # Never a render mode, as EnvironmentAdapter.make; FlattenObservation where named.
+        env = make(self.env_id, disable_env_checker=True, **self.env_kwargs)
         space = env.observation_space
         if not _is_flat_box(space):
             env.close()
@@ -117,7 +122,7 @@ def unsupported_observation(env_id: str, space: gym.Space) -> str:
     what = "an image" if len(getattr(space, "shape", None) or ()) == 3 else type(space).__name__
     return (
         f"{env_id} observes {what} ({space}); oodrl needs a flat Box observation (one vector "
-        "per step): wrap the environment in gymnasium.wrappers.FlattenObservation and register it."
+        "per step): `oodrl new --flatten` wraps it in gymnasium.wrappers.FlattenObservation."
     )
 
 

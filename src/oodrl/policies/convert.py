@@ -422,10 +422,9 @@ TRAINERS = {"sac": ("SAC", "continuous"), "ppo": ("PPO", None), "dqn": ("DQN", "
 
 def train_sb3(choice: str, env_id: str, steps: int, seed: int, out: Path) -> Path:
     """Train an SB3 MLP policy with the library's default settings; save its .zip at `out`."""
-    import gymnasium as gym
     import torch
 
-    from oodrl.envs import ENVIRONMENTS
+    from oodrl.envs import ENVIRONMENTS, make
 
     algorithm, kind = TRAINERS[choice]
     adapter = ENVIRONMENTS.get(env_id)()
@@ -440,7 +439,7 @@ def train_sb3(choice: str, env_id: str, steps: int, seed: int, out: Path) -> Pat
     torch.set_num_threads(1)
     settings = {} if choice == "ppo" else {"buffer_size": max(1, min(steps, 1_000_000))}
     model = getattr(stable_baselines3, algorithm)(
-        "MlpPolicy", gym.make(env_id), seed=seed, device="cpu", verbose=0, **settings
+        "MlpPolicy", make(env_id), seed=seed, device="cpu", verbose=0, **settings
     )
     model.learn(total_timesteps=steps)
     model.save(out)

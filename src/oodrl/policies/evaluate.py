@@ -21,13 +21,13 @@ def evaluate_policy(
     In ``noisy`` mode episode ``i`` draws its noise from ``rngs[i]``; by default from
     ``np.random.default_rng(seed + i)``.
     """
-    import gymnasium as gym
+    from oodrl.envs import make
 
     if policy.mode == "noisy" and rngs is None:
         rngs = [np.random.default_rng(seed + i) for i in range(episodes)]
     if rngs is not None and len(rngs) != episodes:
         raise ValueError(f"need one generator per episode ({episodes}); got {len(rngs)}")
-    envs = [gym.make(env_id) for _ in range(episodes)]
+    envs = [make(env_id) for _ in range(episodes)]
     try:
         obs = np.stack([env.reset(seed=seed + i)[0] for i, env in enumerate(envs)]).astype(
             np.float32
