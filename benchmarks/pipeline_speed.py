@@ -5,8 +5,9 @@
 
 In a fresh copy of the repository (committed policies, no outputs):
 1. Per pipeline, its simulation floor: roll out every episode it simulates (ID, clean
-   evaluation, each online injector's headline and sweep sets) with the collector and nothing
-   else — no stores written, no detectors.
+   evaluation and calibration sets, each online injector's headline and sweep sets, the impact
+   curves and the tier sets) with the collector and nothing else — no stores written, no
+   detectors.
 2. Per pipeline, a full `dvc repro` in its directory (each pipeline is a DVC project of its
    own) and the seconds spent inside its stage commands (the rest is process start-up and DVC's
    own bookkeeping); then the suite's leaderboard (only when every pipeline is built).
@@ -46,27 +47,66 @@ SUITE = "pipeline/suite"
 
 
 def simulation_floor(pipeline: Path) -> tuple[float, int]:
-    """Seconds to simulate a pipeline's episodes (as its collect stages do), and the steps."""
-    from oodrl import protocol
+    """Seconds to simulate every episode a pipeline simulates, as its stages do, and the steps
+    of its streams: the ID, clean evaluation and calibration sets, each online injector's
+    headline and sweep sets, the impact curves (SPEC §15: the clean and random-policy returns
+    once, each fault over its grid; their whole episodes are timed, not counted in the steps)
+    and each fault's tier sets."""
+    from oodrl import protocol, yamlio
     from oodrl.config import load_params
+    from oodrl.envs import ENVIRONMENTS
+    from oodrl.impact import calibrate_impact, live_injectors
+    from oodrl.policies.load import load_policy
     from oodrl.store import write_trajectories
+    from oodrl.tiers import read_tiers, tier_sets
 
     params = load_params(pipeline / "params.yaml")
     policy = pipeline / "models" / "policy.pt"
-    online = [n for n in params.benchmark.injectors if params.injector_classes[n].mode == "online"]
-    start = time.perf_counter()
-    sets = [protocol.id_set(params, policy), protocol.eval_set(params, policy)]
-    elapsed = time.perf_counter() - start
+    faults = list(params.benchmark.injectors)
+    online = [n for n in faults if params.injector_classes[n].mode == "online"]
+    timer = _Timer()
+    with timer:
+        sets = [protocol.id_set(params, policy), protocol.eval_set(params, policy)]
+        sets.append(protocol.calibration_set(params, policy))
     with tempfile.TemporaryDirectory() as tmp:
-        eval_path = Path(tmp) / "eval.zarr"
+        id_path, eval_path = Path(tmp) / "id.zarr", Path(tmp) / "eval.zarr"
+        write_trajectories(id_path, sets[0])  # live faults' reference statistics; not timed
         write_trajectories(eval_path, sets[1])  # post-hoc injectors read it; not timed
-        grid = [params.injector_severity(n) for n in online]
-        start = time.perf_counter()
-        for name, headline in zip(online, grid, strict=True):
-            severities = [headline, *params.anomaly.sweep]
-            sets += protocol.perturbed_sets(params, name, severities, policy, eval_path)
-        elapsed += time.perf_counter() - start
-    return elapsed, sum(s.states.shape[0] * s.states.shape[1] for s in sets)
+        with timer:
+            for name in online:
+                severities = [params.injector_severity(name), *params.anomaly.sweep]
+                sets += protocol.perturbed_sets(params, name, severities, policy, eval_path)
+            document = calibrate_impact(
+                ENVIRONMENTS.get(params.env.id)(),
+                load_policy(policy, mode=params.policy.mode),
+                live_injectors(params, faults, id_path),
+                params.tiers.grid,
+                params.tiers.episodes,
+                seed=params.seed,
+                n_boot=params.metrics.n_boot,
+                ci=params.metrics.ci,
+                workers=params.executor.resolved_workers,
+            )
+        impact_file = Path(tmp) / "impact.yaml"
+        impact_file.write_text(yamlio.dump(document))  # what collect_tiers reads; not timed
+        with timer:
+            for name in faults:
+                tiers, _ = read_tiers(impact_file, name)
+                if tiers:
+                    sets += tier_sets(params, name, tiers, policy, id_path)
+    return timer.seconds, sum(s.states.shape[0] * s.states.shape[1] for s in sets)
+
+
+class _Timer:
+    """Sums the seconds spent inside its `with` blocks."""
+
+    seconds = 0.0
+
+    def __enter__(self) -> None:
+        self._start = time.perf_counter()
+
+    def __exit__(self, *exc: object) -> None:
+        self.seconds += time.perf_counter() - self._start
 
 
 def stage_bodies(pipeline: Path) -> float:
