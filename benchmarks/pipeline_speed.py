@@ -9,8 +9,9 @@ In a fresh copy of the repository (committed policies, no outputs):
    curves and the tier sets) with the collector and nothing else — no stores written, no
    detectors.
 2. Per pipeline, a full `dvc repro` in its directory (each pipeline is a DVC project of its
-   own) and the seconds spent inside its stage commands (the rest is process start-up and DVC's
-   own bookkeeping); then the suite's leaderboard (only when every pipeline is built).
+   own), the seconds spent inside its stage commands (the rest is process start-up and DVC's
+   own bookkeeping) and whether it reproduced the committed locks byte for byte; then the
+   suite's leaderboard (only when every pipeline is built).
 3. A no-op `dvc repro` of every project built (one after another), `dvc status` of the root, and
    the seconds DVC takes to build the root's index (every dvc.yaml and dvc.lock of the project
    parsed into stages): every DVC command builds it, and `dvc exp run` builds it again after
@@ -122,6 +123,14 @@ def timed_repro(project: Path, *args: str) -> tuple[float, list[str]]:
     return time.perf_counter() - start, ran
 
 
+def changed_locks(repo: Path, project: str) -> list[str]:
+    """The lock files of `project` that its from-scratch run left different from the committed
+    ones ([]: every committed lock reproduced byte for byte)."""
+    out = run(repo, "git", "status", "--porcelain", "--", project).stdout
+    paths = [line[3:] for line in out.splitlines() if line.endswith("dvc.lock")]
+    return [p for p in paths if project != "." or not p.startswith("pipeline/")]
+
+
 def timed_status(project: Path) -> tuple[float, bool]:
     """`dvc status` of one project: seconds, and whether it printed nothing to do."""
     start = time.perf_counter()
@@ -215,13 +224,16 @@ def main() -> None:
                 continue
             full, ran = timed_repro(repo / name)
             bodies = stage_bodies(repo / name)
+            changed = changed_locks(repo, name)
+            locks = f"CHANGED: {changed}" if changed else "reproduced"
             rows.append({"pipeline": name, "floor_s": floor, "steps": steps, "full_s": full,
-                         "stage_bodies_s": bodies, "stages": len(ran)})  # fmt: skip
+                         "stage_bodies_s": bodies, "stages": len(ran),
+                         "locks_changed": changed})  # fmt: skip
             floor_total += floor
             full_total += full
             print(f"{name}: {steps} steps, floor {floor:.1f} s; full {full:.1f} s "
                   f"({len(ran)} stages; {bodies:.1f} s inside stage commands) = "
-                  f"{full / floor:.1f}× the floor", flush=True)  # fmt: skip
+                  f"{full / floor:.1f}× the floor; locks {locks}", flush=True)  # fmt: skip
         if args.floors_only:
             write_figures(args.json, {"pipelines": rows, "suite_floor_s": floor_total})
             return
