@@ -32,6 +32,8 @@ MORE_POLICIES: dict[tuple[str, str], Path] = {
     ("Acrobot-v1", "2"): Path("pipeline/acrobot_policy2"),
     ("LunarLander-v3", "1"): Path("pipeline/lunar_lander_policy1"),
     ("LunarLander-v3", "2"): Path("pipeline/lunar_lander_policy2"),
+    ("Pendulum-v1", "1"): Path("pipeline/pendulum_policy1"),
+    ("Pendulum-v1", "2"): Path("pipeline/pendulum_policy2"),
 }
 
 #: Mean return over 30 held-out episodes a committed policy must reach (SPEC §11).
