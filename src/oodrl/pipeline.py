@@ -46,6 +46,8 @@ DETECTOR_TEMPLATE = Path(__file__).with_name("detector_pipeline.yaml")
 #: A detector file's stages run in the pipeline's directory: detectors/<detector>/ -> ../..
 WDIR = "../.."
 PARAMS_FILE = "params.yaml"
+#: Where the interpreter caches bytecode beside the sources: never a code dep (.dvcignore).
+BYTECODE_DIR = "__pycache__"
 CHECK_VERB = "check-params"
 CHECKED = "data/params.checked"
 CODE_STAMPS = "data/code"
@@ -100,6 +102,16 @@ class Project:
     @property
     def package_dir(self) -> Path:
         return self.root / CODE_DIR / CLI_MODULE.partition(".")[0]
+
+    def source_files(self) -> list[Path]:
+        """The package's files as the root's directory dep counts them: bytecode left out."""
+        return sorted(
+            path
+            for path in self.package_dir.rglob("*")
+            if path.is_file()
+            and BYTECODE_DIR not in path.relative_to(self.package_dir).parts
+            and path.suffix != ".pyc"
+        )
 
     def module_file(self, module: str) -> Path | None:
         """The project file that `import module` executes, or None if it is not ours."""
@@ -499,7 +511,13 @@ def rendered(pipeline_dir: Path, root: Path) -> str:
     for _, body in _stage_bodies(stages):
         kind = stage_kind(body["cmd"])
         if kind is not None and kind[0] == CHECK_VERB:
-            code = [project.package_dir, *sorted(plugin_files(project, params))]
+            # The root depends on the package directory, which its .dvcignore rids of
+            # bytecode. DVC applies no .dvcignore to a dep outside the project, so an
+            # environment's project lists the package's files one by one: a directory dep would
+            # count the __pycache__ of whoever ran the code, and no clone would match the lock.
+            root = project.pipeline_dir == project.root
+            package = [project.package_dir] if root else project.source_files()
+            code = [*package, *sorted(plugin_files(project, params))]
             body["deps"].clear()
             body["deps"].extend(project.relative(p) for p in (*_params_chain(params_path), *code))
     _add_stamps(stages)
@@ -740,7 +758,7 @@ SUBREPO_FILES: dict[str, str] = {
     ".dvc/.gitignore": "/config.local\n/tmp\n/cache\n",
     ".dvcignore": (
         "# Byte-compiled files: the code deps are the sources, not what the interpreter caches.\n"
-        "__pycache__/\n*.pyc\n"
+        f"{BYTECODE_DIR}/\n*.pyc\n"
     ),
 }
 

@@ -31,6 +31,7 @@ from oodrl.pipeline import (
     write_stamps,
 )
 from oodrl.suite import MORE_POLICIES, PIPELINE_DIRS, suite_runs
+from oodrl.testing.pipeline import run
 
 SOURCE_ROOT = Path(oodrl.__file__).resolve().parents[2]  # the checkout the stages import
 
@@ -86,6 +87,12 @@ def test_every_stage_depends_on_its_code_stamp_and_check_params_on_the_sources(r
 
 
 # -- environment pipelines ---------------------------------------------------------------------
+CARTPOLE_PARAMS = (
+    "extends: ../../params.yaml\nenv: {id: CartPole-v1, T: 60}\n"
+    "anomaly: {injectors: {action_conditioned_dynamics: {target_action: 1}}}\n"
+)
+
+
 @pytest.fixture
 def env_project(tmp_path, repo_root) -> Path:
     """A project with the shared params and one environment directory extending them."""
@@ -93,10 +100,7 @@ def env_project(tmp_path, repo_root) -> Path:
     shutil.copy(repo_root / "params.yaml", tmp_path / "params.yaml")
     env = tmp_path / "pipeline" / "cartpole"
     env.mkdir(parents=True)
-    (env / "params.yaml").write_text(
-        "extends: ../../params.yaml\nenv: {id: CartPole-v1, T: 60}\n"
-        "anomaly: {injectors: {action_conditioned_dynamics: {target_action: 1}}}\n"
-    )
+    (env / "params.yaml").write_text(CARTPOLE_PARAMS)
     return tmp_path
 
 
@@ -116,7 +120,10 @@ def test_environment_pipeline_paths_are_relative_to_its_directory(env_project):
     assert (env / ".dvc" / "../../../.dvc").resolve() == env_project / ".dvc"
     assert "dir = ../../../.dvc/cache" in config
     stages = yaml.safe_load((env / "dvc.yaml").read_text())["stages"]
-    assert stages["check_params"]["deps"] == ["params.yaml", "../../params.yaml", "../../src/oodrl"]
+    # The package's files one by one (DVC applies no .dvcignore outside the project).
+    sources = [f"../../{s.relative_to(env_project)}" for s in Project(env_project).source_files()]
+    assert stages["check_params"]["deps"] == ["params.yaml", "../../params.yaml", *sources]
+    assert "../../src/oodrl/cli.py" in stages["check_params"]["deps"]
     assert "--merged data/params.yaml" in stages["check_params"]["cmd"]
     # DVC reads a key from one file: the merged params check_params writes.
     kde = yaml.safe_load((env / detector_pipeline("kde_density")).read_text())["stages"]
@@ -129,6 +136,27 @@ def test_environment_pipeline_paths_are_relative_to_its_directory(env_project):
         "models/policy.pt": {"cache": False, "persist": True}
     }
     check(env_project)
+
+
+def test_bytecode_beside_the_sources_leaves_an_environment_project_up_to_date(tmp_path, repo_root):
+    """The interpreter's __pycache__ is in no lock: a clone that ran the code matches it."""
+    shutil.copytree(repo_root / "src", tmp_path / "src", ignore=shutil.ignore_patterns("*.pyc"))
+    shutil.copy(repo_root / "params.yaml", tmp_path / "params.yaml")
+    env = tmp_path / "pipeline" / "cartpole"
+    env.mkdir(parents=True)
+    (env / "params.yaml").write_text(CARTPOLE_PARAMS)
+    write(tmp_path)
+    run(tmp_path, "git", "init", "-q")
+    run(tmp_path, "dvc", "init", "-q")
+    run(env, "dvc", "repro", "check_params")
+    package = tmp_path / "src" / "oodrl"
+    for cache in (package / "__pycache__", package / "core" / "__pycache__"):
+        cache.mkdir(exist_ok=True)
+        (cache / "cli.cpython-311.pyc").write_bytes(b"bytecode")
+    assert "up to date" in run(env, "dvc", "status", "check_params").stdout
+    with (package / "cli.py").open("a") as source:  # a source edit still re-runs the check
+        source.write("\n")
+    assert "changed deps" in run(env, "dvc", "status", "check_params").stdout
 
 
 def test_a_shared_fan_out_change_makes_environment_pipelines_stale(env_project):
