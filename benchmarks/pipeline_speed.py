@@ -1,7 +1,7 @@
 """The suite's pipelines against their simulation floor, in one run (SPEC §12).
 
     python benchmarks/pipeline_speed.py [--pipelines . pipeline/cartpole …] [--no-knobs]
-                                        [--cache-dir DIR] [--json OUT]
+                                        [--cache-dir DIR] [--json OUT] [--baseline REV]
 
 In a fresh copy of the repository (committed policies, no outputs):
 1. Per pipeline, its simulation floor: roll out every episode it simulates (ID, clean
@@ -22,6 +22,9 @@ In a fresh copy of the repository (committed policies, no outputs):
 Prints every figure and the ratios: full / floor per pipeline, suite / suite floor, each knob /
 the root's full run. `--cache-dir` shares a DVC cache (e.g. the checkout's own, so that its
 `dvc repro` afterwards restores these results from the run cache instead of recomputing them).
+`--baseline REV` first measures 2-4 on a clone of commit REV whose stages run REV's own
+sources, so a change is reported before and after in one run, against the same floors (the
+floors are the simulation's, computed once with this checkout's code).
 """
 
 from __future__ import annotations
@@ -116,10 +119,10 @@ def stage_bodies(pipeline: Path) -> float:
     return sum(json.loads(path.read_text())["wall_s"] for path in records)
 
 
-def timed_repro(project: Path, *args: str) -> tuple[float, list[str]]:
+def timed_repro(project: Path, *args: str, env: dict | None = None) -> tuple[float, list[str]]:
     """`dvc repro` in one DVC project (the root, or a pipeline's directory)."""
     start = time.perf_counter()
-    ran = repro(project, *args)
+    ran = repro(project, *args, env=env)
     return time.perf_counter() - start, ran
 
 
@@ -131,10 +134,10 @@ def changed_locks(repo: Path, project: str) -> list[str]:
     return [p for p in paths if project != "." or not p.startswith("pipeline/")]
 
 
-def timed_status(project: Path) -> tuple[float, bool]:
+def timed_status(project: Path, env: dict | None = None) -> tuple[float, bool]:
     """`dvc status` of one project: seconds, and whether it printed nothing to do."""
     start = time.perf_counter()
-    done = run(project, "dvc", "status", "-q", check=False)
+    done = run(project, "dvc", "status", "-q", check=False, env=env)
     return time.perf_counter() - start, done.returncode == 0
 
 
@@ -159,7 +162,7 @@ def edit_params(repo: Path, edit) -> None:
     (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
 
-def knob_runs(repo: Path) -> dict[str, tuple[float, int]]:
+def knob_runs(repo: Path, env: dict | None = None) -> dict[str, tuple[float, int]]:
     """Seconds and stages run for each of the design's variants, on the root pipeline."""
     figures = {}
 
@@ -174,12 +177,12 @@ def knob_runs(repo: Path) -> dict[str, tuple[float, int]]:
 
     for name, edit in [("injector knob", injector), ("detector knob", detector)]:
         edit_params(repo, edit)
-        seconds, ran = timed_repro(repo)
+        seconds, ran = timed_repro(repo, env=env)
         figures[name] = (seconds, len(ran))
     run(repo, "git", "add", "-A")
     run(repo, "git", "commit", "-q", "-m", "knobs")
     start = time.perf_counter()
-    done = run(repo, "dvc", "exp", "run", "-S", "anomaly.severity=0.6")
+    done = run(repo, "dvc", "exp", "run", "-S", "anomaly.severity=0.6", env=env)
     ran = [line for line in done.stdout.splitlines() if line.startswith("Running stage '")]
     figures["dvc exp run -S anomaly.severity=0.6"] = (time.perf_counter() - start, len(ran))
     # The same variant by hand: edit, `dvc repro`, `dvc exp save`. Back at the commit first
@@ -187,10 +190,10 @@ def knob_runs(repo: Path) -> dict[str, tuple[float, int]]:
     run(repo, "git", "checkout", "-q", "--", ".")
     run(repo, "dvc", "checkout", "-q")
     edit_params(repo, severity)
-    seconds, ran = timed_repro(repo, "--no-run-cache")
+    seconds, ran = timed_repro(repo, "--no-run-cache", env=env)
     figures["headline severity, plain dvc repro"] = (seconds, len(ran))
     start = time.perf_counter()
-    run(repo, "dvc", "exp", "save", "-n", "severity-0.6")
+    run(repo, "dvc", "exp", "save", "-n", "severity-0.6", env=env)
     figures["then dvc exp save"] = (time.perf_counter() - start, 0)
     return figures
 
@@ -207,65 +210,82 @@ def main() -> None:
     )
     parser.add_argument("--cache-dir", type=Path, help="the DVC cache the copy uses")
     parser.add_argument("--json", type=Path, help="also write the figures here")
+    parser.add_argument("--baseline", metavar="REV", help="also measure commit REV, first")
     args = parser.parse_args()
 
     with tempfile.TemporaryDirectory() as tmp:
         repo = copy_project(ROOT, Path(tmp) / "repo")
-        if args.cache_dir:  # every project's: each names the root's cache in its .dvc/config
-            for project in [".", *every[1:], SUITE]:
-                run(repo / project, "dvc", "cache", "dir", "--local", str(args.cache_dir.resolve()))
-        rows, floor_total, full_total = [], 0.0, 0.0
+        floors = {}
         for name in args.pipelines:
-            floor, steps = simulation_floor(repo / name)
-            if args.floors_only:
-                rows.append({"pipeline": name, "floor_s": floor, "steps": steps})
-                floor_total += floor
-                print(f"{name}: {steps} steps, floor {floor:.1f} s", flush=True)
-                continue
-            full, ran = timed_repro(repo / name)
-            bodies = stage_bodies(repo / name)
-            changed = changed_locks(repo, name)
-            locks = f"CHANGED: {changed}" if changed else "reproduced"
-            rows.append({"pipeline": name, "floor_s": floor, "steps": steps, "full_s": full,
-                         "stage_bodies_s": bodies, "stages": len(ran),
-                         "locks_changed": changed})  # fmt: skip
-            floor_total += floor
-            full_total += full
-            print(f"{name}: {steps} steps, floor {floor:.1f} s; full {full:.1f} s "
-                  f"({len(ran)} stages; {bodies:.1f} s inside stage commands) = "
-                  f"{full / floor:.1f}× the floor; locks {locks}", flush=True)  # fmt: skip
+            floors[name] = simulation_floor(repo / name)
+            print(f"{name}: {floors[name][1]} steps, floor {floors[name][0]:.1f} s", flush=True)
+        figures = {"suite_floor_s": sum(f for f, _ in floors.values())}
         if args.floors_only:
-            write_figures(args.json, {"pipelines": rows, "suite_floor_s": floor_total})
+            rows = [{"pipeline": n, "floor_s": f, "steps": k} for n, (f, k) in floors.items()]
+            write_figures(args.json, {**figures, "pipelines": rows})
             return
-        projects = list(args.pipelines)
-        if args.pipelines == every:
-            seconds, ran = timed_repro(repo / SUITE)
-            full_total += seconds
-            projects.append(SUITE)
-            print(f"leaderboard: {seconds:.1f} s ({len(ran)} stages)")
-        noop = 0.0
-        for project in projects:
-            seconds, ran = timed_repro(repo / project)
-            assert ran == [], f"the no-op repro of {project} ran {ran}"
-            noop += seconds
-        status_s, clean = timed_status(repo)
-        index_s, stages, files = dvc_index(repo)
-        print(f"suite: floor {floor_total:.1f} s; full {full_total:.1f} s = "
-              f"{full_total / floor_total:.1f}× the floor; no-op repro of {len(projects)} "
-              f"projects {noop:.2f} s; root `dvc status` {status_s:.2f} s "
-              f"({'clean' if clean else 'NOT clean'}); DVC's index of the root project "
-              f"({stages} stages in {files} DVC files) {index_s:.2f} s")  # fmt: skip
-        figures = {"pipelines": rows, "suite_floor_s": floor_total, "suite_full_s": full_total,
-                   "noop_s": noop, "root_status": {"s": status_s, "clean": clean},
-                   "dvc_index": {"s": index_s, "stages": stages, "files": files}}  # fmt: skip
-        root_full = next((r["full_s"] for r in rows if r["pipeline"] == "."), None)
-        if not args.no_knobs and root_full:
-            knobs = knob_runs(repo)
-            for name, (seconds, stages) in knobs.items():
-                print(f"{name}: {seconds:.1f} s ({stages} stages) = "
-                      f"{seconds / root_full:.0%} of the root's full run")  # fmt: skip
-            figures["knobs"] = {k: {"s": s, "stages": n} for k, (s, n) in knobs.items()}
+        if args.baseline:
+            base = Path(tmp) / "baseline"
+            run(Path(tmp), "git", "clone", "-q", "--no-checkout", str(ROOT), str(base))
+            run(base, "git", "checkout", "-q", args.baseline)
+            # The baseline's stage commands import its own sources, not this checkout's.
+            path = [str(base / "src"), os.environ.get("PYTHONPATH")]
+            env = {"PYTHONPATH": os.pathsep.join(filter(None, path))}
+            print(f"-- baseline {args.baseline}", flush=True)
+            figures["baseline"] = {"rev": args.baseline, **measure(base, args, floors, every, env)}
+            print("-- this checkout", flush=True)
+        figures.update(measure(repo, args, floors, every, None))
         write_figures(args.json, figures)
+
+
+def measure(repo: Path, args, floors: dict, every: list[str], env: dict | None) -> dict:
+    """Steps 2-4 on one copy; `env` added to its commands' environment."""
+    if args.cache_dir:  # every project's: each names the root's cache in its .dvc/config
+        for project in [".", *every[1:], SUITE]:
+            run(repo / project, "dvc", "cache", "dir", "--local", str(args.cache_dir.resolve()))
+    rows, floor_total, full_total = [], 0.0, 0.0
+    for name in args.pipelines:
+        floor, steps = floors[name]
+        full, ran = timed_repro(repo / name, env=env)
+        bodies = stage_bodies(repo / name)
+        changed = changed_locks(repo, name)
+        locks = f"CHANGED: {changed}" if changed else "reproduced"
+        rows.append({"pipeline": name, "floor_s": floor, "steps": steps, "full_s": full,
+                     "stage_bodies_s": bodies, "stages": len(ran),
+                     "locks_changed": changed})  # fmt: skip
+        floor_total += floor
+        full_total += full
+        print(f"{name}: full {full:.1f} s ({len(ran)} stages; {bodies:.1f} s inside stage "
+              f"commands) = {full / floor:.1f}× the floor; locks {locks}", flush=True)  # fmt: skip
+    projects = list(args.pipelines)
+    if args.pipelines == every:
+        seconds, ran = timed_repro(repo / SUITE, env=env)
+        full_total += seconds
+        projects.append(SUITE)
+        print(f"leaderboard: {seconds:.1f} s ({len(ran)} stages)")
+    noop = 0.0
+    for project in projects:
+        seconds, ran = timed_repro(repo / project, env=env)
+        assert ran == [], f"the no-op repro of {project} ran {ran}"
+        noop += seconds
+    status_s, clean = timed_status(repo, env=env)
+    index_s, stages, files = dvc_index(repo)
+    print(f"suite: floor {floor_total:.1f} s; full {full_total:.1f} s = "
+          f"{full_total / floor_total:.1f}× the floor; no-op repro of {len(projects)} "
+          f"projects {noop:.2f} s; root `dvc status` {status_s:.2f} s "
+          f"({'clean' if clean else 'NOT clean'}); DVC's index of the root project "
+          f"({stages} stages in {files} DVC files) {index_s:.2f} s", flush=True)  # fmt: skip
+    figures = {"pipelines": rows, "suite_floor_s": floor_total, "suite_full_s": full_total,
+               "noop_s": noop, "root_status": {"s": status_s, "clean": clean},
+               "dvc_index": {"s": index_s, "stages": stages, "files": files}}  # fmt: skip
+    root_full = next((r["full_s"] for r in rows if r["pipeline"] == "."), None)
+    if not args.no_knobs and root_full:
+        knobs = knob_runs(repo, env)
+        for name, (seconds, stages) in knobs.items():
+            print(f"{name}: {seconds:.1f} s ({stages} stages) = "
+                  f"{seconds / root_full:.0%} of the root's full run", flush=True)  # fmt: skip
+        figures["knobs"] = {k: {"s": s, "stages": n} for k, (s, n) in knobs.items()}
+    return figures
 
 
 def write_figures(path: Path | None, figures: dict) -> None:

@@ -57,6 +57,24 @@ def test_stage_verbs_refuse_unlisted_components(repo_root):
     assert "Did you mean 'kde_density'?" in result.output
 
 
+@pytest.mark.parametrize(
+    ("sets", "given"),
+    [
+        ([], "got none."),
+        (["--injector", "stuck_actuator", "--eval", "e.zarr"], "got --eval with --injector."),
+        (["--sweep", "s.zarr"], "got --sweep."),
+    ],
+)
+def test_score_refuses_sets_that_are_not_one_stage_in_one_line(repo_root, sets, given):
+    """A clean stage's sets (--eval, --calibration) or one injector's (--ood, --sweep, --tiers)."""
+    args = ["score", "kde_density", "--model", "m.pkl", "--scores", "scores", *sets,
+            "--params", str(repo_root / "params.yaml")]  # fmt: skip
+    result = runner.invoke(app, args)
+    assert result.exit_code == 2
+    assert "score needs any of --eval (clean set) and --calibration" in result.output
+    assert given in result.output and result.output.count("\n") == 1
+
+
 def test_train_policy_never_trains_unasked(tmp_path, repo_root, monkeypatch):
     """Without OODRL_RETRAIN_POLICY=1 a missing policy stops the stage with the commands that
     restore it or retrain it, in one line, instead of 13 minutes of training."""

@@ -510,51 +510,41 @@ def fit(
 def score(
     detector: Annotated[str, typer.Argument()],
     model: Annotated[Path, PathOption()],
-    out: Annotated[Path, PathOption()],
+    scores: Annotated[Path, PathOption(help="the scores directory: a store per set in it")],
     injector: Annotated[str | None, typer.Option(help="score this injector's sets")] = None,
     eval: Annotated[Path | None, PathOption()] = None,  # noqa: A002 - the option is --eval
+    calibration: Annotated[Path | None, PathOption()] = None,
     ood: Annotated[Path | None, PathOption()] = None,
     sweep: Annotated[Path | None, PathOption()] = None,
-    calibration: Annotated[Path | None, PathOption()] = None,
     tiers: Annotated[Path | None, PathOption()] = None,
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Stages score_clean, score_calibration, score, score_sweep and score_tiers: one detector
-    on the clean evaluation set (--eval) or calibration streams (--calibration), or on one
-    injector's headline set (--injector, --ood), its sweep (--sweep) or its tiers (--tiers)."""
+    """Stages score_clean and score: one detector on the clean sets (--eval, the evaluation set;
+    --calibration, the calibration streams), or on one injector's sets (--injector with --ood,
+    its headline set; --sweep, its sweep; --tiers, its tier streams); one store per set."""
     from oodrl.layout import detector_stage
     from oodrl.stages import score as stages
 
     config = _load(params)
     _known(detector, config.benchmark.detectors, "benchmark.detectors")
-    inputs = {"--eval": eval, "--calibration": calibration, "--ood": ood, "--sweep": sweep,
-              "--tiers": tiers}  # fmt: skip
-    given = [option for option, path in inputs.items() if path is not None]
-    clean = given in (["--eval"], ["--calibration"])
-    if len(given) != 1 or (injector is None) != clean:
+    clean = {"--eval": eval, "--calibration": calibration}
+    faulty = {"--ood": ood, "--sweep": sweep, "--tiers": tiers}
+    wanted, unwanted = (clean, faulty) if injector is None else (faulty, clean)
+    if not any(wanted.values()) or any(unwanted.values()):
+        given = [option for option, path in {**clean, **faulty}.items() if path is not None]
         raise ConfigError(
-            f"score needs exactly one of --eval (clean set), --calibration (calibration "
-            f"streams), or --injector with one of --ood (headline set), --sweep (sweep sets), "
-            f"--tiers (tier sets); got {', '.join(given) or 'none'}."
+            f"score needs any of --eval (clean set) and --calibration (calibration streams), or "
+            f"--injector with any of --ood (headline set), --sweep (sweep sets) and --tiers "
+            f"(tier sets); got {', '.join(given) or 'none'}"
+            f"{' with --injector' if injector is not None else ''}."
         )
-    if eval is not None:
+    if injector is None:
         with _stage(detector_stage(detector, "score_clean")):
-            stages.score_clean(detector, model, eval, out)
-        return
-    if calibration is not None:
-        with _stage(detector_stage(detector, "score_calibration")):
-            stages.score_calibration(detector, model, calibration, out)
+            stages.score_clean_sets(detector, model, scores, eval, calibration)
         return
     _known(injector, config.benchmark.injectors, "benchmark.injectors")
-    if ood is not None:
-        with _stage(detector_stage(detector, "score", injector)):
-            stages.score_headline(detector, injector, model, ood, out)
-    elif sweep is not None:
-        with _stage(detector_stage(detector, "score_sweep", injector)):
-            stages.score_sweep(detector, injector, model, sweep, out)
-    else:
-        with _stage(detector_stage(detector, "score_tiers", injector)):
-            stages.score_tiers(detector, injector, model, tiers, out)
+    with _stage(detector_stage(detector, "score", injector)):
+        stages.score_injector_sets(detector, injector, model, scores, ood, sweep, tiers)
 
 
 @command("tier-metrics")

@@ -23,8 +23,8 @@ def detector_pipeline(detector: str) -> str:
 
 
 def detector_stage(detector: str, stage: str, injector: str | None = None) -> str:
-    """The DVC address of one of a detector's stages: 'fit', 'score_clean', 'score@<injector>'
-    (headline severity) or 'score_sweep@<injector>'."""
+    """The DVC address of one of a detector's stages: 'fit', 'score_clean' (the clean sets) or
+    'score@<injector>' (the injector's headline, sweep and tier sets)."""
     name = stage if injector is None else f"{stage}@{injector}"
     return f"{detector_pipeline(detector)}:{name}"
 
@@ -38,3 +38,13 @@ def score_store(scores_dir: Path, detector: str, injector: str | None = None) ->
 def sweep_score_store(scores_dir: Path, detector: str, injector: str) -> Path:
     """`detector`'s scores of one injector's sweep sets (one group per severity)."""
     return Path(scores_dir) / detector / "sweep" / f"{injector}.zarr"
+
+
+def tier_score_store(scores_dir: Path, detector: str, fault: str) -> Path:
+    """`detector`'s scores of one fault's tier streams (one group per tier severity)."""
+    return Path(scores_dir) / detector / "tiers" / f"{fault}.zarr"
+
+
+def calibration_score_store(scores_dir: Path, detector: str) -> Path:
+    """`detector`'s scores of the clean calibration streams (the per-stream alarm rule's)."""
+    return Path(scores_dir) / detector / "calibration.zarr"

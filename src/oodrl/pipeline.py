@@ -575,6 +575,12 @@ def _as_recorded(stages: dict[str, Any]) -> None:
         kept = name
     policy = str(variant["policy"])
     for _, body in _stage_bodies(stages):
+        for option, simulated in variant["unscored"].items():
+            argument = f" {option} {simulated['dep']}"
+            if argument in body["cmd"]:
+                body["cmd"] = _replaced(body["cmd"], argument, "")
+                body["deps"].remove(simulated["dep"])
+                body["outs"].remove(simulated["out"])
         if POLICY in body["cmd"]:
             body["cmd"] = _replaced(body["cmd"], POLICY, policy)
         deps = body.get("deps") or []
@@ -613,8 +619,10 @@ def _replaced(text: str, old: str, new: str) -> str:
     result = type(text)(text.replace(old, new))
     folds = getattr(text, "fold_pos", None)
     if folds:
-        at, shift = text.index(old), len(new) - len(old)
-        result.fold_pos = [p + shift if p > at else p for p in folds]
+        at, end = text.index(old), text.index(old) + len(old)
+        # A fold inside the replaced text goes with it; those after it move.
+        result.fold_pos = [p if p < at else p + len(new) - len(old) for p in folds
+                           if not at <= p < end]  # fmt: skip
     return result
 
 

@@ -7,7 +7,7 @@ The stages (one pipeline, `oodrl.pipeline`):
 - `collect_tiers@<fault>` collects the evaluation streams with the fault live from the onset at
   each reachable tier (`tier_sets`): `data/tiers/<fault>.zarr`;
 - `collect_calibration` collects `tiers.n_calibration` held-out clean streams;
-- each detector's `score_calibration` and `score_tiers@<fault>` score them;
+- each detector's `score_clean` and `score@<fault>` score them (`oodrl.layout` names the stores);
 - `tier_metrics` writes `reports/tier_results.yaml` and `reports/tiers/`
   (`oodrl.metrics.tiers`).
 """
@@ -32,15 +32,6 @@ CALIBRATION_STORE = "data/calibration.zarr"
 
 def impact_path(impact_dir: Path, fault: str) -> Path:
     return Path(impact_dir) / f"{fault}.yaml"
-
-
-def tier_score_store(scores_dir: Path, detector: str, fault: str) -> Path:
-    """`detector`'s scores of one fault's tier streams (one group per tier severity)."""
-    return Path(scores_dir) / detector / "tiers" / f"{fault}.zarr"
-
-
-def calibration_score_store(scores_dir: Path, detector: str) -> Path:
-    return Path(scores_dir) / detector / "calibration.zarr"
 
 
 def read_impact(path: Path, fault: str) -> dict[str, Any]:

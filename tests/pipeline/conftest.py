@@ -24,19 +24,13 @@ def detector_stages(detector: str) -> list[str]:
     return [
         detector_stage(detector, "fit"),
         detector_stage(detector, "score_clean"),
-        detector_stage(detector, "score_calibration"),
         *injector_scoring([detector], *INJECTORS),
     ]
 
 
 def injector_scoring(detectors: list[str], *injectors: str) -> list[str]:
-    """The headline, sweep and tier scoring stages of `detectors` on `injectors`."""
-    return [
-        detector_stage(d, stage, i)
-        for d in detectors
-        for i in injectors
-        for stage in ("score", "score_sweep", "score_tiers")
-    ]
+    """The scoring stages (headline, sweep and tier sets) of `detectors` on `injectors`."""
+    return [detector_stage(d, "score", i) for d in detectors for i in injectors]
 
 
 def injector_stages(injector: str) -> list[str]:

@@ -94,16 +94,16 @@ def test_corrupt_store_and_pickle_give_clear_errors(repo):
     store = repo / "data/eval.zarr"
     store.write_bytes(store.read_bytes()[: store.stat().st_size // 2])
     done = run(repo, "oodrl", "score", "kde_density", "--model",
-               "models/detectors/kde_density.pkl", "--eval", "data/eval.zarr", "--out",
-               "scores/x.zarr", check=False)  # fmt: skip
+               "models/detectors/kde_density.pkl", "--eval", "data/eval.zarr", "--scores",
+               "x", check=False)  # fmt: skip
     assert done.returncode == 1
     assert "data/eval.zarr" in done.stderr and "dvc repro -s -f collect_eval" in done.stderr
     assert done.stderr.count("\n") == 1
 
     (repo / "models/detectors/kde_density.pkl").write_bytes(b"not a pickle")
     done = run(repo, "oodrl", "score", "kde_density", "--model",
-               "models/detectors/kde_density.pkl", "--eval", "data/id.zarr", "--out",
-               "scores/x.zarr", check=False)  # fmt: skip
+               "models/detectors/kde_density.pkl", "--eval", "data/id.zarr", "--scores",
+               "x", check=False)  # fmt: skip
     assert done.returncode == 1
     hint = f"dvc repro -s -f {detector_stage('kde_density', 'fit')}"
     assert hint in done.stderr and "Traceback" not in done.stderr

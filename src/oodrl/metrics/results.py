@@ -174,7 +174,7 @@ def _detector_results(params: Params, scores_dir: Path, detector: str):
         groups, attrs = read_scores(path, stage=detector_stage(detector, "score", injector))
         sweep_path = sweep_score_store(scores_dir, detector, injector)
         sweep_groups, sweep_attrs = read_scores(
-            sweep_path, stage=detector_stage(detector, "score_sweep", injector)
+            sweep_path, stage=detector_stage(detector, "score", injector)
         )
         spec, modes[injector] = attrs["spec"], attrs["mode"]
         headline, episodes = _summary(

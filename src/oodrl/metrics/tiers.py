@@ -20,9 +20,15 @@ from typing import Any
 import numpy as np
 
 from oodrl.config import Params
-from oodrl.layout import CLEAN_GROUP, detector_stage, score_store
+from oodrl.layout import (
+    CLEAN_GROUP,
+    calibration_score_store,
+    detector_stage,
+    score_store,
+    tier_score_store,
+)
 from oodrl.store import read_scores, severity_key
-from oodrl.tiers import calibration_score_store, impact_path, read_impact, tier_score_store
+from oodrl.tiers import impact_path, read_impact
 
 #: The level matched AUROC and detection_rate@K must reach for the minimum detectable impact.
 MDI_TARGET = 0.9
@@ -60,7 +66,7 @@ def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detect
     clean = clean_groups[CLEAN_GROUP]["scores"]
     calibration_groups, _ = read_scores(
         calibration_score_store(scores_dir, detector),
-        stage=detector_stage(detector, "score_calibration"),
+        stage=detector_stage(detector, "score_clean"),
     )
     # The per-stream rule: the conformal quantile of the calibration streams' maxima.
     maxima = calibration_groups[CLEAN_GROUP]["scores"].max(axis=1)
@@ -69,7 +75,7 @@ def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detect
     for fault in params.benchmark.injectors:
         groups, attrs = read_scores(
             tier_score_store(scores_dir, detector, fault),
-            stage=detector_stage(detector, "score_tiers", fault),
+            stage=detector_stage(detector, "score", fault),
         )
         for tier, severity in attrs["tiers"].items():
             group = groups[severity_key(severity)]

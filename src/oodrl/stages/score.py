@@ -1,14 +1,22 @@
-"""Scoring stages: one fitted detector on the clean evaluation set, on one injector's headline
-set, on its sweep (separate stages, so a changed headline severity does not re-score the
-sweep), on the clean calibration streams, or on a fault's tier streams. What the score stores
-hold: `oodrl.scoring`."""
+"""Scoring stages: one fitted detector on the clean sets (stage score_clean: the evaluation set
+and the calibration streams) or on one injector's sets (stage score@<injector>: its headline
+set, its sweep and its tier streams). One stage per detector and injector rather than one per
+set: a stage process and DVC's bookkeeping cost more than scoring a set (SPEC §12). Each set is
+scored by a freshly loaded detector, as when every set had a process of its own, so no set's
+scores depend on another's. What the score stores hold: `oodrl.scoring`; where: `oodrl.layout`."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 from oodrl import scoring
-from oodrl.layout import detector_stage
+from oodrl.layout import (
+    calibration_score_store,
+    detector_stage,
+    score_store,
+    sweep_score_store,
+    tier_score_store,
+)
 from oodrl.store import (
     load_detector,
     read_sweep,
@@ -16,6 +24,32 @@ from oodrl.store import (
     read_trajectories,
     write_scores,
 )
+
+
+def score_clean_sets(
+    name: str, detector_path: Path, scores_dir: Path, eval_path: Path | None,
+    calibration_path: Path | None,
+) -> None:  # fmt: skip
+    """Stage score_clean: the sets given of the clean evaluation set and calibration streams."""
+    if eval_path is not None:
+        score_clean(name, detector_path, eval_path, score_store(scores_dir, name))
+    if calibration_path is not None:
+        out = calibration_score_store(scores_dir, name)
+        score_calibration(name, detector_path, calibration_path, out)
+
+
+def score_injector_sets(
+    name: str, injector: str, detector_path: Path, scores_dir: Path, ood_path: Path | None,
+    sweep_path: Path | None, tiers_path: Path | None,
+) -> None:  # fmt: skip
+    """Stage score@<injector>: the sets given of the injector's headline set, sweep and tiers."""
+    for path, score, out in [
+        (ood_path, score_headline, score_store(scores_dir, name, injector)),
+        (sweep_path, score_sweep, sweep_score_store(scores_dir, name, injector)),
+        (tiers_path, score_tiers, tier_score_store(scores_dir, name, injector)),
+    ]:
+        if path is not None:
+            score(name, injector, detector_path, path, out)
 
 
 def _fitted(detector_path: Path, name: str):
