@@ -44,6 +44,8 @@ def test_local_workers_leave_the_locks_of_a_serial_run(fresh_suite, serial_locks
     assert locks(fresh_suite) == serial_locks
     assert sorted(run.pipeline for run in first.pipelines) == [".", "pipeline/cartpole"]
     assert all(run.ran for run in first.pipelines)  # each clone computed its pipeline
+    assert all(run.restore_seconds > 0 for run in first.pipelines)  # each restored as it ended
+    assert 0 < first.leaderboard_seconds <= first.head_seconds
     # The head restores every stage from the run-cache the workers filled; what DVC cannot
     # cache (check_params and train_policy keep persistent outputs) runs again, in seconds.
     restorable = {s.split(":")[-1] for s in first.head_ran} - {"check_params", "train_policy"}

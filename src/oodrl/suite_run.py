@@ -4,8 +4,9 @@ Each pipeline is a DVC project of its own (the root, `pipeline/<env>/`), all kee
 run-cache in the root's cache. DVC refuses two `dvc repro` in one workspace, so each pipeline is
 built by a task in its own clone of the head's commit; what the tasks computed reaches the head
 through DVC's run-cache, and the head's `dvc repro` of each project then restores every stage
-from it (outputs are byte-identical on any machine, SPEC §14) and runs only the leaderboard:
-the checkout ends with the dvc.lock files a serial run writes.
+from it (outputs are byte-identical on any machine, SPEC §14), as soon as the project's task is
+done, while the other tasks run; after the last one it runs the leaderboard. The checkout ends
+with the dvc.lock files a serial run writes.
 
 Two ways to share, chosen by what is configured:
 - a DVC remote (the root project's default remote, at any config level): each task runs
@@ -27,9 +28,9 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
-from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from oodrl.errors import ConfigError, OodrlError
@@ -44,22 +45,26 @@ class SuiteRunError(OodrlError):
 
 @dataclass(frozen=True)
 class PipelineRun:
-    """One pipeline built by one task: how long, where, and which stages ran (not restored)."""
+    """One pipeline built by one task: how long, where, and which stages ran (not restored);
+    then how long the head took to restore it into the checkout."""
 
     pipeline: str
     seconds: float
     node: str
     ran: tuple[str, ...]
+    restore_seconds: float = 0.0
 
 
 @dataclass(frozen=True)
 class SuiteRun:
-    """The tasks, what the head ran once they were done and how long that took, in all."""
+    """The tasks; what the head ran (restoring the projects, the leaderboard); how long it all
+    took, how long the head went on after the last task, and the leaderboard project's time."""
 
     pipelines: tuple[PipelineRun, ...]
     head_ran: tuple[str, ...]
     seconds: float
     head_seconds: float = 0.0
+    leaderboard_seconds: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -216,21 +221,34 @@ def run_suite(
         "shared_cache": None if ray_address else _cache_dir(root),
     }
     if ray_address is None:
-        runs = list(_local_tasks(pipelines, job, workers, echo))
+        tasks = _local_tasks(pipelines, job, workers, echo)
     else:
-        runs = list(_ray_tasks(pipelines, job, ray_address, echo))
-    tasks_done = time.perf_counter()
+        tasks = _ray_tasks(pipelines, job, ray_address, echo)
+    runs: list[PipelineRun] = []
     head_ran: list[str] = []
     with _dvc_config(remote) as env:
-        # Every stage restored from the run-cache but those DVC cannot cache (persistent
-        # outputs: check_params, train_policy) and the leaderboard, which runs here.
-        for project in projects:
+
+        def repro(project: str) -> float:
+            # Every stage restored from the run-cache but those DVC cannot cache (persistent
+            # outputs: check_params, train_policy) and, in the suite's, the leaderboard.
+            began = time.perf_counter()
             done = _run(root / project, env, "dvc", "repro", *(["--pull"] if remote else []))
-            head_ran += [f"{project}:{stage}" for stage in ran_stages(done.stdout)]
+            head_ran.extend(f"{project}:{stage}" for stage in ran_stages(done.stdout))
+            return time.perf_counter() - began
+
+        # Restored as each task ends, while the others run: projects are separate DVC
+        # workspaces. A later failure leaves the projects restored so far consistent (each
+        # one's locks and outputs are a finished `dvc repro`), the others untouched.
+        for built in tasks:
+            runs.append(replace(built, restore_seconds=repro(built.pipeline)))
+        tasks_done = time.perf_counter()
+        leaderboard_seconds = repro(SUITE_DIR.as_posix())
     end = time.perf_counter()
-    echo(f"suite: done in {end - start:.1f} s, {end - tasks_done:.1f} s of them restoring and "
-         f"the leaderboard; the head ran {', '.join(head_ran) or 'nothing'}")  # fmt: skip
-    return SuiteRun(tuple(runs), tuple(head_ran), end - start, end - tasks_done)
+    echo(f"suite: done in {end - start:.1f} s, {end - tasks_done:.1f} s of them after the last "
+         f"task; the head ran {', '.join(head_ran) or 'nothing'}")  # fmt: skip
+    return SuiteRun(
+        tuple(runs), tuple(head_ran), end - start, end - tasks_done, leaderboard_seconds
+    )
 
 
 def _finished(echo, pipeline: str, seconds: float, node: str, ran: tuple[str, ...]) -> PipelineRun:
@@ -245,14 +263,13 @@ def _local_tasks(pipelines: list[str], job: dict, workers: int, echo) -> Iterato
         return _finished(echo, pipeline, seconds, "local", ran)
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(task, pipeline) for pipeline in _longest_first(pipelines)]
-        wait(futures, return_when=FIRST_EXCEPTION)
-        for future in futures:
-            future.cancel()  # after a failure, no new pipeline starts; running ones finish
-        for pipeline, future in zip(_longest_first(pipelines), futures, strict=True):
-            if not future.cancelled() and future.exception() is not None:
-                raise SuiteRunError(f"{pipeline}: {future.exception()}")
-        yield from (future.result() for future in futures)
+        futures = {pool.submit(task, pipeline): pipeline for pipeline in _longest_first(pipelines)}
+        for future in as_completed(futures):
+            if future.exception() is not None:
+                for pending in futures:
+                    pending.cancel()  # no new pipeline starts; running ones finish
+                raise SuiteRunError(f"{futures[future]}: {future.exception()}")
+            yield future.result()
 
 
 def _longest_first(pipelines: list[str]) -> list[str]:
