@@ -2,11 +2,13 @@
 
 Each pipeline is a DVC project of its own (the root, `pipeline/<env>/`), all keeping outputs and
 run-cache in the root's cache. DVC refuses two `dvc repro` in one workspace, so each pipeline is
-built by a task in its own clone of the head's commit; what the tasks computed reaches the head
-through DVC's run-cache, and the head's `dvc repro` of each project then restores every stage
-from it (outputs are byte-identical on any machine, SPEC §14), as soon as the project's task is
-done, while the other tasks run; after the last one it runs the leaderboard. The checkout ends
-with the dvc.lock files a serial run writes.
+built by a task in its own clone of the head's commit. What a task computed reaches the head in
+two parts: the task returns its project's dvc.lock files and the outputs DVC does not cache, and
+the cache (shared, or the remote) holds every other output, which the head checks out (outputs
+are byte-identical on any machine, SPEC §14). The head does so for each project as soon as its
+task is done, while the other tasks run, and after the last one runs the leaderboard: the
+checkout ends with the dvc.lock files a serial run writes. The tasks also push DVC's run-cache,
+so that any machine's `dvc repro` restores their stages instead of running them.
 
 Two ways to share, chosen by what is configured:
 - a DVC remote (the root project's default remote, at any config level): each task runs
@@ -20,6 +22,7 @@ Two ways to share, chosen by what is configured:
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import socket
@@ -52,6 +55,7 @@ class PipelineRun:
     seconds: float
     node: str
     ran: tuple[str, ...]
+    files: dict[str, bytes]
     restore_seconds: float = 0.0
 
 
@@ -93,9 +97,10 @@ def suite_pipelines(root: Path) -> list[str]:
 # -- one task: one pipeline in its own clone ----------------------------------------------------
 def build_pipeline(
     bundle: bytes, commit: str, pipeline: str, remote: Remote | None, shared_cache: str | None
-) -> tuple[float, tuple[str, ...]]:
+) -> tuple[float, tuple[str, ...], dict[str, bytes]]:
     """Clone `commit` from a git bundle, `dvc repro` the pipeline's project there (pulling what
-    the remote has), push its outputs and run-cache; the seconds taken and the stages that ran.
+    the remote has), push its outputs and run-cache; the seconds taken, the stages that ran and
+    the `checkout_files` of the built project.
 
     The clone is a temporary directory that goes with the task. A task killed with its node
     leaves nothing in the head's checkout; the remote and the cache receive whole objects only
@@ -113,12 +118,27 @@ def build_pipeline(
         if remote:
             _run(project, env, "dvc", "push", "-q")
             _run(project, env, sys.executable, "-c", PUSH_RUN_CACHE)
-    return time.perf_counter() - start, ran_stages(done.stdout)
+        files = checkout_files(project)
+    return time.perf_counter() - start, ran_stages(done.stdout), files
+
+
+def checkout_files(project: Path) -> dict[str, bytes]:
+    """What a built project holds beyond the cache, by path relative to it: the dvc.lock of each
+    of its DVC files and every output DVC does not cache (metrics.json, the policy). With these
+    written, `dvc checkout` makes another checkout of the commit the built project."""
+    from dvc.repo import Repo
+
+    with Repo(str(project)) as repo:
+        stages = repo.index.stages
+        paths = {Path(stage.dvcfile.path).with_suffix(".lock") for stage in stages}
+        paths |= {Path(out.fs_path) for stage in stages for out in stage.outs if not out.use_cache}
+    return {path.relative_to(project).as_posix(): path.read_bytes() for path in sorted(paths)}
 
 
 #: `dvc push --run-cache`, plus what it leaves behind: the outputs of each run-cache entry that
-#: the workspace push skips (`cache: false` ones, such as metrics.json), without which the head
-#: could not restore those stages. Runs in the task's clone, on the DVC the node has installed.
+#: the workspace push skips (`cache: false` ones, such as metrics.json), without which another
+#: machine's `dvc repro` could not restore those stages. Runs in the task's clone, on the DVC the
+#: node has installed.
 PUSH_RUN_CACHE = """
 from dvc.repo import Repo
 
@@ -199,6 +219,7 @@ def run_suite(
         raise ConfigError(f"--workers must be >= 1. Got {workers} instead.")
     if ray_address is not None:
         _check_reachable(ray_address)
+    from oodrl.fileio import atomic_write_bytes
     from oodrl.pipeline import SUITE_DIR
 
     pipelines = suite_pipelines(root)
@@ -221,49 +242,58 @@ def run_suite(
         "shared_cache": None if ray_address else _cache_dir(root),
     }
     if ray_address is None:
-        tasks = _local_tasks(pipelines, job, workers, echo)
+        tasks = _local_tasks(root, pipelines, job, workers, echo)
     else:
-        tasks = _ray_tasks(pipelines, job, ray_address, echo)
+        tasks = _ray_tasks(root, pipelines, job, ray_address, echo)
     runs: list[PipelineRun] = []
-    head_ran: list[str] = []
+    last_task_ended = start
     with _dvc_config(remote) as env:
 
-        def repro(project: str) -> float:
-            # Every stage restored from the run-cache but those DVC cannot cache (persistent
-            # outputs: check_params, train_policy) and, in the suite's, the leaderboard.
+        def restore(built: PipelineRun) -> float:
+            """The task's locks and uncached outputs written, every other output checked out
+            from the cache (pulled first from a remote): what `dvc repro` would leave, without
+            DVC's per-stage run-cache lookups. `--force` replaces outputs as `dvc repro` does."""
             began = time.perf_counter()
-            done = _run(root / project, env, "dvc", "repro", *(["--pull"] if remote else []))
-            head_ran.extend(f"{project}:{stage}" for stage in ran_stages(done.stdout))
+            project = root / built.pipeline
+            for name, content in built.files.items():
+                atomic_write_bytes(project / name, content)
+            _run(project, env, "dvc", "pull" if remote else "checkout", "--force", "-q")
             return time.perf_counter() - began
 
         # Restored as each task ends, while the others run: projects are separate DVC
         # workspaces. A later failure leaves the projects restored so far consistent (each
-        # one's locks and outputs are a finished `dvc repro`), the others untouched.
+        # one's locks and outputs are those of a finished `dvc repro`), the others untouched.
         for built in tasks:
-            runs.append(replace(built, restore_seconds=repro(built.pipeline)))
-        tasks_done = time.perf_counter()
-        leaderboard_seconds = repro(SUITE_DIR.as_posix())
+            last_task_ended = time.perf_counter()
+            runs.append(replace(built, files={}, restore_seconds=restore(built)))
+        began = time.perf_counter()
+        done = _run(root / SUITE_DIR, env, "dvc", "repro", *(["--pull"] if remote else []))
+        head_ran = [f"{SUITE_DIR.as_posix()}:{stage}" for stage in ran_stages(done.stdout)]
+        leaderboard_seconds = time.perf_counter() - began
     end = time.perf_counter()
-    echo(f"suite: done in {end - start:.1f} s, {end - tasks_done:.1f} s of them after the last "
-         f"task; the head ran {', '.join(head_ran) or 'nothing'}")  # fmt: skip
-    return SuiteRun(
-        tuple(runs), tuple(head_ran), end - start, end - tasks_done, leaderboard_seconds
-    )
+    after = end - last_task_ended
+    echo(f"suite: done in {end - start:.1f} s, {after:.1f} s of them after the last task; "
+         f"the head ran {', '.join(head_ran) or 'nothing'}")  # fmt: skip
+    return SuiteRun(tuple(runs), tuple(head_ran), end - start, after, leaderboard_seconds)
 
 
-def _finished(echo, pipeline: str, seconds: float, node: str, ran: tuple[str, ...]) -> PipelineRun:
+def _finished(echo, pipeline: str, node: str, built: tuple) -> PipelineRun:
+    seconds, ran, files = built
     echo(f"finished {pipeline} in {seconds:.1f} s on {node} ({len(ran)} stages ran)")
-    return PipelineRun(pipeline, seconds, node, ran)
+    return PipelineRun(pipeline, seconds, node, ran, files)
 
 
-def _local_tasks(pipelines: list[str], job: dict, workers: int, echo) -> Iterator[PipelineRun]:
+def _local_tasks(
+    root: Path, pipelines: list[str], job: dict, workers: int, echo
+) -> Iterator[PipelineRun]:
     def task(pipeline: str) -> PipelineRun:
         echo(f"started  {pipeline}")
-        seconds, ran = build_pipeline(pipeline=pipeline, **job)
-        return _finished(echo, pipeline, seconds, "local", ran)
+        return _finished(echo, pipeline, "local", build_pipeline(pipeline=pipeline, **job))
 
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = {pool.submit(task, pipeline): pipeline for pipeline in _longest_first(pipelines)}
+        futures = {
+            pool.submit(task, pipeline): pipeline for pipeline in _longest_first(root, pipelines)
+        }
         for future in as_completed(futures):
             if future.exception() is not None:
                 for pending in futures:
@@ -272,12 +302,29 @@ def _local_tasks(pipelines: list[str], job: dict, workers: int, echo) -> Iterato
             yield future.result()
 
 
-def _longest_first(pipelines: list[str]) -> list[str]:
-    """The root (the paper's full protocol, the longest) first, so that it never starts last."""
-    return sorted(pipelines, key=lambda pipeline: pipeline != ".")
+def _longest_first(root: Path, pipelines: list[str]) -> list[str]:
+    """Longest first, so that a long pipeline never starts last: by the stage wall time of its
+    last build in the checkout (`total_stage_wall_s` of its reports/run_meta.yaml); a pipeline
+    with none (never built here) counts as the longest. Ties keep the suite's order."""
+
+    def last_build_seconds(pipeline: str) -> float:
+        meta = root / pipeline / "reports" / "run_meta.yaml"
+        found = re.search(r"^total_stage_wall_s: ([0-9.]+)$", _text_or_empty(meta), re.MULTILINE)
+        return float(found[1]) if found else math.inf
+
+    return sorted(pipelines, key=lambda pipeline: -last_build_seconds(pipeline))
 
 
-def _ray_tasks(pipelines: list[str], job: dict, address: str, echo) -> Iterator[PipelineRun]:
+def _text_or_empty(path: Path) -> str:
+    try:
+        return path.read_text()
+    except FileNotFoundError:
+        return ""
+
+
+def _ray_tasks(
+    root: Path, pipelines: list[str], job: dict, address: str, echo
+) -> Iterator[PipelineRun]:
     import ray
 
     ray.init(address=address, log_to_driver=False, logging_level="ERROR")
@@ -285,29 +332,28 @@ def _ray_tasks(pipelines: list[str], job: dict, address: str, echo) -> Iterator[
         remote_build = ray.remote(num_cpus=1, max_retries=RAY_MAX_RETRIES)(_ray_build)
         shared = {**job, "bundle": ray.put(job["bundle"])}
         names = {}
-        for pipeline in _longest_first(pipelines):
+        for pipeline in _longest_first(root, pipelines):
             echo(f"started  {pipeline}")
             names[remote_build.remote(pipeline=pipeline, **shared)] = pipeline
         pending = list(names)
         while pending:
             (ready,), pending = ray.wait(pending, num_returns=1)
             try:
-                seconds, ran, node = ray.get(ready)
+                *built, node = ray.get(ready)
             except ray.exceptions.RayError as error:
                 for ref in pending:
                     ray.cancel(ref, force=True)
                 cause = getattr(error, "cause", None)
                 raise SuiteRunError(f"{names[ready]}: {cause or error}") from None
-            yield _finished(echo, names[ready], seconds, node, ran)
+            yield _finished(echo, names[ready], node, tuple(built))
     finally:
         ray.shutdown()
 
 
-def _ray_build(**job) -> tuple[float, tuple[str, ...], str]:
+def _ray_build(**job) -> tuple[float, tuple[str, ...], dict[str, bytes], str]:
     import ray
 
-    seconds, ran = build_pipeline(**job)
-    return seconds, ran, ray.get_runtime_context().get_node_id()
+    return *build_pipeline(**job), ray.get_runtime_context().get_node_id()
 
 
 def _check_reachable(address: str) -> None:
