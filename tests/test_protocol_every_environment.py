@@ -17,7 +17,6 @@ import pytest
 
 from oodrl import yamlio
 from oodrl.config import merge_params, parse_params, read_params_data
-from oodrl.layout import score_store, sweep_score_store
 from oodrl.metrics.results import compute_results
 from oodrl.stages import collect, fit, score
 from oodrl.suite import PIPELINE_DIRS, policy_path
@@ -81,13 +80,10 @@ def test_the_protocol_runs_on_every_environment(env_id, tmp_path: Path):
     for detector in params.benchmark.detectors:
         model = tmp_path / "models" / f"{detector}.pkl"
         fit.fit_detector(params, detector, tmp_path / "id.zarr", model)
-        score.score_clean(detector, model, tmp_path / "eval.zarr", scores / detector / "eval.zarr")
+        score.score_clean_sets(detector, model, scores, tmp_path / "eval.zarr", None)
         for injector in params.benchmark.injectors:
             headline, sweep = (tmp_path / kind / f"{injector}.zarr" for kind in ("ood", "sweep"))
-            out = score_store(scores, detector, injector)
-            score.score_headline(detector, injector, model, headline, out)
-            out = sweep_score_store(scores, detector, injector)
-            score.score_sweep(detector, injector, model, sweep, out)
+            score.score_injector_sets(detector, injector, model, scores, headline, sweep, None)
     results = compute_results(params, scores)
     records = [r for r in results.records if r.kind == "anomaly"]
     assert len(records) == len(params.benchmark.detectors) * 9

@@ -8,6 +8,7 @@ from __future__ import annotations
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -213,6 +214,18 @@ def test_batch_scoring_follows_the_probe():
     assert forest.batched_
     check_streaming(ecod, evaluation)
     check_streaming(forest, evaluation)
+
+
+def test_a_library_keeps_its_numba_kernels_compiled_on_disk():
+    """PyOD's HBOS compiles its scoring loop with numba in every process that scores; wrapped,
+    its compiled code is cached on disk (numba's own cache), so a stage process loads it."""
+    from pyod.models import hbos
+
+    fit, _, evaluation = splits(CONTINUOUS)
+    DETECTORS.get("pyod.models.hbos:HBOS")().fit(fit).score(evaluation[0])
+    cache = hbos._calculate_outlier_scores._cache
+    assert type(cache).__name__ == "FunctionCache"
+    assert list(Path(cache.cache_path).glob("hbos._calculate_outlier_scores-*.nbi"))
 
 
 def test_window_view_stacks_the_last_states_oldest_first():

@@ -39,14 +39,26 @@ a copy of the fitted model (one per `score_many` call, one per stream), so a lib
 itself while scoring (ECOD stores its last batch's ranks, a KD-tree counts its queries) never
 changes the fitted detector.
 
+So a row of the "state", "state_action" and "transition" views scores the same bits alone as in
+any batch: such a detector is `row_independent` (its scoring stage then scores a fault's
+pre-onset steps once, `oodrl.scoring`); a "window" row reads the L − 1 steps before it.
+
+Numba: a library that compiles its kernels with numba (PyOD's HBOS) compiles them in every
+process that first calls them, seconds per stage. `library_detector_class` turns on numba's own
+on-disk cache for the compiled functions of the library class's module, so a machine compiles
+them once; the cached machine code is the code a fresh compile makes (numba keys it by the
+source and the CPU).
+
 Library kernels are not oodrl's machine-independent arithmetic: `machine_independent` is False.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import inspect
+import sys
 from collections import deque
 from collections.abc import Sequence
 from typing import Any, ClassVar
@@ -138,8 +150,23 @@ def class_path(cls: type) -> str:
 def library_detector_class(library_class: type) -> type[LibraryDetector]:
     """The LibraryDetector subclass wrapping `library_class`, named by its import path."""
     path = class_path(library_class)
+    cache_numba_kernels(library_class.__module__)
     attributes = {"name": path, "library_class": library_class, "__module__": __name__}
     return type(f"LibraryDetector[{path}]", (LibraryDetector,), attributes)
+
+
+def cache_numba_kernels(module_name: str) -> None:
+    """Let numba keep on disk what it compiles for the module's numba functions (see the module
+    docstring). Nothing to do when the module did not import numba."""
+    dispatcher = sys.modules.get("numba.core.dispatcher")
+    module = sys.modules.get(module_name)
+    if dispatcher is None or module is None:
+        return
+    for value in vars(module).values():
+        if isinstance(value, dispatcher.Dispatcher):
+            # RuntimeError: numba finds nowhere to write, and compiles in each process as before.
+            with contextlib.suppress(RuntimeError):
+                value.enable_caching()
 
 
 def _restore(path: str, state: dict[str, Any]) -> LibraryDetector:
@@ -211,6 +238,11 @@ class LibraryDetector(BaseDetector):
     def latency(self) -> int:
         # "transition" rows hold the increment s_{t+1} − s_t: known one step after t.
         return int(self.features == "transition")
+
+    @property
+    def row_independent(self) -> bool:  # type: ignore[override]
+        # A step's row is scored alone or in probed chunks (see the module docstring).
+        return self.features != "window"
 
     # -- the library object ---------------------------------------------------------------
     def _library_kwargs(self) -> dict[str, Any]:

@@ -2,8 +2,10 @@
 and the calibration streams) or on one injector's sets (stage score@<injector>: its headline
 set, its sweep and its tier streams). One stage per detector and injector rather than one per
 set: a stage process and DVC's bookkeeping cost more than scoring a set (SPEC §12). Each set is
-scored by a freshly loaded detector, as when every set had a process of its own, so no set's
-scores depend on another's. What the score stores hold: `oodrl.scoring`; where: `oodrl.layout`."""
+scored by a freshly loaded detector, as when every set had a process of its own; an injector's
+sets share the scores of their equal pre-onset steps (`oodrl.scoring.SharedPrefixes`), which
+are the same bits as scoring them again. What the score stores hold: `oodrl.scoring`; where:
+`oodrl.layout`."""
 
 from __future__ import annotations
 
@@ -31,11 +33,13 @@ def score_clean_sets(
     calibration_path: Path | None,
 ) -> None:  # fmt: skip
     """Stage score_clean: the sets given of the clean evaluation set and calibration streams."""
-    if eval_path is not None:
-        score_clean(name, detector_path, eval_path, score_store(scores_dir, name))
-    if calibration_path is not None:
-        out = calibration_score_store(scores_dir, name)
-        score_calibration(name, detector_path, calibration_path, out)
+    for path, stage, out in [
+        (eval_path, "collect_eval", score_store(scores_dir, name)),
+        (calibration_path, "collect_calibration", calibration_score_store(scores_dir, name)),
+    ]:
+        if path is not None:
+            clean = read_trajectories(path, stage=stage)
+            write_scores(out, *scoring.clean_scores(_fitted(detector_path, name), name, clean))
 
 
 def score_injector_sets(
@@ -43,42 +47,42 @@ def score_injector_sets(
     sweep_path: Path | None, tiers_path: Path | None,
 ) -> None:  # fmt: skip
     """Stage score@<injector>: the sets given of the injector's headline set, sweep and tiers."""
+    shared = scoring.SharedPrefixes()
     for path, score, out in [
         (ood_path, score_headline, score_store(scores_dir, name, injector)),
         (sweep_path, score_sweep, sweep_score_store(scores_dir, name, injector)),
         (tiers_path, score_tiers, tier_score_store(scores_dir, name, injector)),
     ]:
         if path is not None:
-            score(name, injector, detector_path, path, out)
+            score(name, injector, detector_path, path, out, shared)
 
 
 def _fitted(detector_path: Path, name: str):
     return load_detector(detector_path, stage=detector_stage(name, "fit"))
 
 
-def score_clean(name: str, detector_path: Path, eval_path: Path, out: Path):
-    clean = read_trajectories(eval_path, stage="collect_eval")
-    write_scores(out, *scoring.clean_scores(_fitted(detector_path, name), name, clean))
-
-
-def score_headline(name: str, injector: str, detector_path: Path, ood_path: Path, out: Path):
+def score_headline(
+    name: str, injector: str, detector_path: Path, ood_path: Path, out: Path,
+    shared: scoring.SharedPrefixes,
+) -> None:  # fmt: skip
     headline = read_trajectories(ood_path, stage=f"collect_ood@{injector}")
     detector = _fitted(detector_path, name)
-    write_scores(out, *scoring.headline_scores(detector, name, injector, headline))
+    write_scores(out, *scoring.headline_scores(detector, name, injector, headline, shared))
 
 
-def score_sweep(name: str, injector: str, detector_path: Path, sweep_path: Path, out: Path):
+def score_sweep(
+    name: str, injector: str, detector_path: Path, sweep_path: Path, out: Path,
+    shared: scoring.SharedPrefixes,
+) -> None:  # fmt: skip
     sweep = read_sweep(sweep_path, stage=f"collect_sweep@{injector}")
     detector = _fitted(detector_path, name)
-    write_scores(out, *scoring.sweep_scores(detector, name, injector, sweep))
+    write_scores(out, *scoring.sweep_scores(detector, name, injector, sweep, shared))
 
 
-def score_calibration(name: str, detector_path: Path, calibration_path: Path, out: Path):
-    calibration = read_trajectories(calibration_path, stage="collect_calibration")
-    write_scores(out, *scoring.clean_scores(_fitted(detector_path, name), name, calibration))
-
-
-def score_tiers(name: str, injector: str, detector_path: Path, tiers_path: Path, out: Path):
+def score_tiers(
+    name: str, injector: str, detector_path: Path, tiers_path: Path, out: Path,
+    shared: scoring.SharedPrefixes,
+) -> None:  # fmt: skip
     sets, attrs = read_tier_sets(tiers_path, stage=f"collect_tiers@{injector}")
     detector = _fitted(detector_path, name)
-    write_scores(out, *scoring.tier_scores(detector, name, injector, sets, attrs))
+    write_scores(out, *scoring.tier_scores(detector, name, injector, sets, attrs, shared))

@@ -104,11 +104,10 @@ for injector in injectors:
 for name in params.benchmark.detectors:
     model = out / f"models/{name}.pkl"
     fit.fit_detector(params, name, out / "data/id.zarr", model)
-    score.score_clean(name, model, out / "data/eval.zarr", out / f"scores/{name}/eval.zarr")
+    score.score_clean_sets(name, model, out / "scores", out / "data/eval.zarr", None)
     for injector in injectors:
-        for kind, run in [("ood", score.score_headline), ("sweep", score.score_sweep)]:
-            data = out / f"data/{kind}/{injector}.zarr"
-            run(name, injector, model, data, out / f"scores/{name}/{kind}/{injector}.zarr")
+        ood, sweep = (out / f"data/{kind}/{injector}.zarr" for kind in ("ood", "sweep"))
+        score.score_injector_sets(name, injector, model, out / "scores", ood, sweep, None)
 """
 
 

@@ -1,0 +1,91 @@
+"""A built project's scoring stages, this checkout against a baseline commit, in one run.
+
+    python benchmarks/score_stages.py --baseline REV [--project pipeline/pendulum]
+                                      [--injector stuck_actuator] [--json OUT] [detectors...]
+
+For each detector (default: every one the project fits), runs its `score@<injector>` stage
+command (headline set, sweep and tiers) as `dvc repro` would, once with this checkout's sources
+and once with REV's (a clone; the command imports REV's `src` first), alternately so that both
+see the same load, each writing to a temporary directory. Prints the seconds of each, the ratio
+and whether the two wrote the same bytes; the stores in the project are not touched.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def stage_command(name: str, injector: str, scores: Path) -> list[str]:
+    return [
+        "oodrl", "score", name, "--injector", injector,
+        "--model", f"models/detectors/{name}.pkl", "--scores", str(scores),
+        "--ood", f"data/ood/{injector}.zarr", "--sweep", f"data/sweep/{injector}.zarr",
+        "--tiers", f"data/tiers/{injector}.zarr",
+    ]  # fmt: skip
+
+
+def timed(project: Path, command: list[str], env: dict) -> float:
+    start = time.perf_counter()
+    subprocess.run(command, cwd=project, env=env, check=True, capture_output=True)
+    return time.perf_counter() - start
+
+
+def tree_hash(directory: Path) -> str:
+    digest = hashlib.sha256()
+    for path in sorted(p for p in directory.rglob("*") if p.is_file()):
+        digest.update(str(path.relative_to(directory)).encode() + path.read_bytes())
+    return digest.hexdigest()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("detectors", nargs="*")
+    parser.add_argument("--project", type=Path, default=Path("pipeline/pendulum"))
+    parser.add_argument("--injector", default="stuck_actuator")
+    parser.add_argument("--baseline", metavar="REV", required=True)
+    parser.add_argument("--json", type=Path)
+    args = parser.parse_args()
+    project = (ROOT / args.project).resolve()
+    names = args.detectors or sorted(p.stem for p in (project / "models/detectors").glob("*.pkl"))
+    rows, totals = {}, {"baseline": 0.0, "current": 0.0}
+    with tempfile.TemporaryDirectory() as tmp:
+        base = Path(tmp) / "baseline"
+        subprocess.run(["git", "clone", "-q", str(ROOT), str(base)], check=True)
+        subprocess.run(["git", "-C", str(base), "checkout", "-q", args.baseline], check=True)
+        pythonpath = os.pathsep.join(
+            filter(None, [str(base / "src"), os.environ.get("PYTHONPATH")])
+        )
+        envs = {"baseline": {**os.environ, "PYTHONPATH": pythonpath}, "current": dict(os.environ)}
+        for name in names:
+            row = {}
+            for which, env in envs.items():
+                out = Path(tmp) / which / name
+                row[which] = timed(project, stage_command(name, args.injector, out), env)
+                row[f"{which}_sha256"] = tree_hash(out)
+                totals[which] += row[which]
+            same = row["baseline_sha256"] == row["current_sha256"]
+            rows[name] = {**row, "same_bytes": same}
+            print(
+                f"{name:24s} baseline {row['baseline']:6.2f} s  current {row['current']:6.2f} s"
+                f"  {row['current'] / row['baseline']:5.2f}x  same bytes: {same}",
+                flush=True,
+            )
+    ratio = totals["current"] / totals["baseline"]
+    print(f"{'all':24s} baseline {totals['baseline']:6.2f} s  current {totals['current']:6.2f} s"
+          f"  {ratio:5.2f}x")  # fmt: skip
+    if args.json:
+        summary = {"project": str(args.project), "injector": args.injector, **totals}
+        args.json.write_text(json.dumps({"stages": rows, "total": summary}, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
