@@ -118,3 +118,41 @@ def test_sac_smoke_training_exports_an_actor_that_acts_like_sb3(tmp_path: Path):
     actions = exported.act(obs)
     assert actions.dtype == np.float32 and actions.shape == (64, 1)
     np.testing.assert_allclose(actions, expected, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_sac_training_resumes_from_its_last_evaluation(tmp_path: Path, monkeypatch):
+    """Interrupted after its second evaluation, a SAC training goes on from there when started
+    again with the same settings; resuming the same checkpoint twice trains the same actor."""
+    import shutil
+
+    from oodrl.policies.sac import TrainingCheckpoint, train_sac
+    from oodrl.policies.settings import SacConfig
+
+    config = SacConfig(
+        env_id="Pendulum-v1", total_steps=600, learning_starts=100, eval_every=200,
+        eval_episodes=1, final_eval_episodes=1, early_stop_return=1e9,
+    )  # fmt: skip
+    save = TrainingCheckpoint.save
+
+    def save_then_stop(self, model, progress):
+        save(self, model, progress)
+        if progress["step"] == 400:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(TrainingCheckpoint, "save", save_then_stop)
+    first, second = tmp_path / "a", tmp_path / "b"
+    first.mkdir()
+    with pytest.raises(KeyboardInterrupt):
+        train_sac(config, first / "policy.pt", first / "policy.json")
+    assert not (first / "policy.pt").exists()
+    shutil.copytree(first / "policy.pt.training", second / "policy.pt.training")
+    monkeypatch.setattr(TrainingCheckpoint, "save", save)
+
+    reports = [train_sac(config, d / "policy.pt", d / "policy.json") for d in (first, second)]
+    for directory, report in zip((first, second), reports, strict=True):
+        assert report["trainer"]["resumed_at_steps"] == [400]
+        assert [s for s, _ in report["learning_curve"]] == [200, 400, 600]
+        assert report["steps_run"] == 600
+        assert not (directory / "policy.pt.training").exists()
+    assert (first / "policy.pt").read_bytes() == (second / "policy.pt").read_bytes()
