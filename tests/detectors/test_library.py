@@ -5,6 +5,7 @@ to batch scoring bit for bit, and which detectors are certified machine-independ
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
@@ -226,6 +227,37 @@ def test_a_library_keeps_its_numba_kernels_compiled_on_disk():
     cache = hbos._calculate_outlier_scores._cache
     assert type(cache).__name__ == "FunctionCache"
     assert list(Path(cache.cache_path).glob("hbos._calculate_outlier_scores-*.nbi"))
+
+
+FIT_OR_SCORE_HBOS = """
+import hashlib, pickle, sys
+from pathlib import Path
+from oodrl.detectors import DETECTORS
+from oodrl.testing import linear_system_trajectories
+data = linear_system_trajectories(4, T=60, action_dim=2, seed=0)
+if sys.argv[1] == "fit":
+    detector = DETECTORS.get("pyod.models.hbos:HBOS")().fit(data[:3])
+    Path(sys.argv[2]).write_bytes(pickle.dumps(detector))
+else:
+    pickle.loads(Path(sys.argv[2]).read_bytes()).score(data[3])
+"""
+
+
+def test_a_fitted_hbos_pickles_alike_with_and_without_the_numba_cache(tmp_path):
+    """Fitting compiles HBOS's kernel afresh: on a machine whose scoring filled numba's cache,
+    a fit writes the same bytes as on one that never scored."""
+
+    def run(cache: Path, *args: str) -> None:
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+        command = [sys.executable, "-c", FIT_OR_SCORE_HBOS, *args]
+        subprocess.run(command, env=env, capture_output=True, check=True)
+
+    cold, warm = tmp_path / "cold.pkl", tmp_path / "warm.pkl"
+    run(tmp_path / "cold", "fit", str(cold))
+    run(tmp_path / "warm", "score", str(cold))  # a scoring process compiles into the cache
+    assert list((tmp_path / "warm").rglob("*.nbi"))
+    run(tmp_path / "warm", "fit", str(warm))
+    assert warm.read_bytes() == cold.read_bytes()
 
 
 def test_window_view_stacks_the_last_states_oldest_first():

@@ -44,10 +44,11 @@ any batch: such a detector is `row_independent` (its scoring stage then scores a
 pre-onset steps once, `oodrl.scoring`); a "window" row reads the L − 1 steps before it.
 
 Numba: a library that compiles its kernels with numba (PyOD's HBOS) compiles them in every
-process that first calls them, seconds per stage. `library_detector_class` turns on numba's own
-on-disk cache for the compiled functions of the library class's module, so a machine compiles
-them once; the cached machine code is the code a fresh compile makes (numba keys it by the
-source and the CPU).
+process that first calls them, seconds per stage. Scoring turns on numba's own on-disk cache for
+the compiled functions of the library class's module, so a machine compiles them once for all
+its scoring stages; the cached machine code is the code a fresh compile makes (numba keys it by
+the source and the CPU), and the scores keep their bytes. Fitting always compiles: see
+`_scoring_model`.
 
 Library kernels are not oodrl's machine-independent arithmetic: `machine_independent` is False.
 """
@@ -150,7 +151,6 @@ def class_path(cls: type) -> str:
 def library_detector_class(library_class: type) -> type[LibraryDetector]:
     """The LibraryDetector subclass wrapping `library_class`, named by its import path."""
     path = class_path(library_class)
-    cache_numba_kernels(library_class.__module__)
     attributes = {"name": path, "library_class": library_class, "__module__": __name__}
     return type(f"LibraryDetector[{path}]", (LibraryDetector,), attributes)
 
@@ -315,7 +315,12 @@ class LibraryDetector(BaseDetector):
         self.batched_ = self.api_ != "river" and self._rows_score_alone(x)
 
     def _scoring_model(self) -> Any:
-        """A copy of the fitted model to score with: scoring must not change the detector."""
+        """A copy of the fitted model to score with: scoring must not change the detector.
+
+        Numba's cache is turned on here, for scoring only: code loaded from it returns arrays
+        whose (equal) dtype objects pickle to other bytes, so a model fitted with it would
+        pickle differently on a machine that has the cache than on one that compiles."""
+        cache_numba_kernels(self.library_class.__module__)
         return copy.deepcopy(self.model_)
 
     def _call(self, model: Any, x: np.ndarray) -> np.ndarray:
