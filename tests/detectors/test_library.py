@@ -217,20 +217,8 @@ def test_batch_scoring_follows_the_probe():
     check_streaming(forest, evaluation)
 
 
-def test_a_library_keeps_its_numba_kernels_compiled_on_disk():
-    """PyOD's HBOS compiles its scoring loop with numba in every process that scores; wrapped,
-    its compiled code is cached on disk (numba's own cache), so a stage process loads it."""
-    from pyod.models import hbos
-
-    fit, _, evaluation = splits(CONTINUOUS)
-    DETECTORS.get("pyod.models.hbos:HBOS")().fit(fit).score(evaluation[0])
-    cache = hbos._calculate_outlier_scores._cache
-    assert type(cache).__name__ == "FunctionCache"
-    assert list(Path(cache.cache_path).glob("hbos._calculate_outlier_scores-*.nbi"))
-
-
 FIT_OR_SCORE_HBOS = """
-import hashlib, pickle, sys
+import pickle, sys
 from pathlib import Path
 from oodrl.detectors import DETECTORS
 from oodrl.testing import linear_system_trajectories
@@ -244,8 +232,9 @@ else:
 
 
 def test_a_fitted_hbos_pickles_alike_with_and_without_the_numba_cache(tmp_path):
-    """Fitting compiles HBOS's kernel afresh: on a machine whose scoring filled numba's cache,
-    a fit writes the same bytes as on one that never scored."""
+    """A scoring process keeps HBOS's compiled kernel in numba's on-disk cache, so the next
+    stage process loads it; fitting compiles afresh, so on a machine whose scoring filled the
+    cache a fit writes the same bytes as on one that never scored."""
 
     def run(cache: Path, *args: str) -> None:
         env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
