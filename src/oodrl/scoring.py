@@ -60,11 +60,14 @@ def sweep_scores(
 
 
 def tier_scores(
-    detector, name: str, injector: str, sets: Mapping[float, TrajectorySet], attrs: Mapping,
-    shared: SharedPrefixes | None = None,
+    detector, name: str, injector: str,
+    tiers: tuple[Mapping[float, TrajectorySet], Mapping], shared: SharedPrefixes | None = None,
 ) -> tuple[Groups, dict]:  # fmt: skip
     """The groups and attributes of a detector's score store of one fault's tier streams (one
-    group per reachable tier's severity; none when every tier is unreachable)."""
+    group per reachable tier's severity; none when every tier is unreachable). `tiers`: the
+    tier sets by severity and the tier store's attributes, as `oodrl.store.read_tier_sets`
+    reads them."""
+    sets, attrs = tiers
     groups = {
         severity_key(s): _labelled(detector, name, tset, f"{injector} (σ = {s})", shared)
         for s, tset in sets.items()

@@ -155,9 +155,11 @@ def library_detector_class(library_class: type) -> type[LibraryDetector]:
     return type(f"LibraryDetector[{path}]", (LibraryDetector,), attributes)
 
 
+@functools.cache  # once per process: each scoring model would otherwise walk the module again
 def cache_numba_kernels(module_name: str) -> None:
     """Let numba keep on disk what it compiles for the module's numba functions (see the module
-    docstring). Nothing to do when the module did not import numba."""
+    docstring). Nothing to do when the module did not import numba; called once the module is
+    imported, as it is once a model of it is fitted or unpickled."""
     dispatcher = sys.modules.get("numba.core.dispatcher")
     module = sys.modules.get(module_name)
     if dispatcher is None or module is None:

@@ -48,41 +48,19 @@ def score_injector_sets(
 ) -> None:  # fmt: skip
     """Stage score@<injector>: the sets given of the injector's headline set, sweep and tiers."""
     shared = scoring.SharedPrefixes()
-    for path, score, out in [
-        (ood_path, score_headline, score_store(scores_dir, name, injector)),
-        (sweep_path, score_sweep, sweep_score_store(scores_dir, name, injector)),
-        (tiers_path, score_tiers, tier_score_store(scores_dir, name, injector)),
-    ]:
+    for path, stage, read, score, out in [
+        (ood_path, "collect_ood", read_trajectories, scoring.headline_scores,
+         score_store(scores_dir, name, injector)),
+        (sweep_path, "collect_sweep", read_sweep, scoring.sweep_scores,
+         sweep_score_store(scores_dir, name, injector)),
+        (tiers_path, "collect_tiers", read_tier_sets, scoring.tier_scores,
+         tier_score_store(scores_dir, name, injector)),
+    ]:  # fmt: skip
         if path is not None:
-            score(name, injector, detector_path, path, out, shared)
+            sets = read(path, stage=f"{stage}@{injector}")
+            detector = _fitted(detector_path, name)
+            write_scores(out, *score(detector, name, injector, sets, shared))
 
 
 def _fitted(detector_path: Path, name: str):
     return load_detector(detector_path, stage=detector_stage(name, "fit"))
-
-
-def score_headline(
-    name: str, injector: str, detector_path: Path, ood_path: Path, out: Path,
-    shared: scoring.SharedPrefixes,
-) -> None:  # fmt: skip
-    headline = read_trajectories(ood_path, stage=f"collect_ood@{injector}")
-    detector = _fitted(detector_path, name)
-    write_scores(out, *scoring.headline_scores(detector, name, injector, headline, shared))
-
-
-def score_sweep(
-    name: str, injector: str, detector_path: Path, sweep_path: Path, out: Path,
-    shared: scoring.SharedPrefixes,
-) -> None:  # fmt: skip
-    sweep = read_sweep(sweep_path, stage=f"collect_sweep@{injector}")
-    detector = _fitted(detector_path, name)
-    write_scores(out, *scoring.sweep_scores(detector, name, injector, sweep, shared))
-
-
-def score_tiers(
-    name: str, injector: str, detector_path: Path, tiers_path: Path, out: Path,
-    shared: scoring.SharedPrefixes,
-) -> None:  # fmt: skip
-    sets, attrs = read_tier_sets(tiers_path, stage=f"collect_tiers@{injector}")
-    detector = _fitted(detector_path, name)
-    write_scores(out, *scoring.tier_scores(detector, name, injector, sets, attrs, shared))
