@@ -125,6 +125,24 @@ def test_a_pickled_detector_by_its_path(tmp_path):
     assert info["ood_scores"][0].step == 0
 
 
+def test_the_readme_monitor_snippet_runs(tmp_path, monkeypatch, capsys):
+    """The README's Python example, as printed, with a cusum fitted here in place of the
+    pipeline's pickle (a DVC output, absent from a fresh clone)."""
+    from test_readme import README, blocks, parse_sections
+
+    (snippet,) = blocks(parse_sections(README.read_text())[MONITOR_SECTION], "python")
+    pipeline_pickle = "pipeline/cartpole/models/detectors/cusum.pkl"
+    assert f'"{pipeline_pickle}"' in snippet
+    clean = collect(ENVIRONMENTS.get("CartPole-v1")(), _policy("CartPole-v1"), range(3), 60)
+    trajectories = clean.trajectories()
+    cusum = DETECTORS.get("cusum")().fit(trajectories[:2]).calibrate(trajectories[2:])
+    save_detector(tmp_path / pipeline_pickle, cusum, "cusum", {})
+    monkeypatch.chdir(tmp_path)
+    exec(compile(snippet, str(README), "exec"), {})
+    score, alarm = capsys.readouterr().out.split()[-2:]
+    assert math.isfinite(float(score)) and alarm in {"True", "False"}
+
+
 def test_an_uncalibrated_detector_is_refused():
     trajectories = collect(ENVIRONMENTS.get("CartPole-v1")(), _policy("CartPole-v1"), [7], 50)
     detector = DETECTORS.get("cusum")().fit(trajectories.trajectories())
