@@ -3,6 +3,7 @@ leaderboard; the head's checkout ends with the dvc.lock files of a serial run, b
 
 from __future__ import annotations
 
+import pickle
 import shutil
 import tempfile
 import time
@@ -25,12 +26,22 @@ def commit(repo_root) -> str:
 
 
 @pytest.fixture(scope="session")
-def serial_locks(tmp_path_factory, repo_root, commit) -> dict[str, bytes]:
-    """The locks a serial build of the two-environment suite writes."""
-    repo = two_environment_suite(repo_root, commit, tmp_path_factory.mktemp("serial") / "repo")
-    ran = serial_suite(repo)
-    assert f"{SUITE}:leaderboard" in ran and len(ran) > 20
-    return locks(repo)
+def serial_locks(tmp_path_factory, repo_root, commit, worker_id) -> dict[str, bytes]:
+    """The locks a serial build of the two-environment suite writes. Built once per test run:
+    under pytest-xdist each worker has its own session, so the first to ask builds and the
+    others wait and read its locks (a serial build takes minutes of one core)."""
+    from filelock import FileLock
+
+    this_run = tmp_path_factory.getbasetemp()  # under xdist: this worker's, in the run's
+    shared = this_run if worker_id == "master" else this_run.parent
+    stored = shared / f"serial-locks-{commit}.pickle"
+    with FileLock(f"{stored}.lock"):
+        if not stored.exists():
+            repo = two_environment_suite(repo_root, commit, shared / "serial" / "repo")
+            ran = serial_suite(repo)
+            assert f"{SUITE}:leaderboard" in ran and len(ran) > 20
+            stored.write_bytes(pickle.dumps(locks(repo)))
+        return pickle.loads(stored.read_bytes())
 
 
 @pytest.fixture
