@@ -224,7 +224,11 @@ def run_suite(
 
     pipelines = suite_pipelines(root)
     projects = [*pipelines, SUITE_DIR.as_posix()]
-    if all(_up_to_date(root / project) for project in projects):
+    # One `dvc status` process a project, `workers` at a time: DVC's own index and output
+    # checks take about a second a project, so a no-op run is bounded by them, not by oodrl.
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        current = list(pool.map(lambda project: _up_to_date(root / project), projects))
+    if all(current):
         echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
         return SuiteRun((), (), time.perf_counter() - start)
     _refuse_uncommitted_inputs(root, projects)
