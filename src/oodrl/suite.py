@@ -34,6 +34,12 @@ MORE_POLICIES: dict[tuple[str, str], Path] = {
     ("LunarLander-v3", "2"): Path("pipeline/lunar_lander_policy2"),
     ("Pendulum-v1", "1"): Path("pipeline/pendulum_policy1"),
     ("Pendulum-v1", "2"): Path("pipeline/pendulum_policy2"),
+    ("LunarLanderContinuous-v3", "1"): Path("pipeline/lunar_lander_continuous_policy1"),
+    ("LunarLanderContinuous-v3", "2"): Path("pipeline/lunar_lander_continuous_policy2"),
+    ("HalfCheetah-v5", "1"): Path("pipeline/half_cheetah_policy1"),
+    ("HalfCheetah-v5", "2"): Path("pipeline/half_cheetah_policy2"),
+    ("Hopper-v5", "1"): Path("pipeline/hopper_policy1"),
+    ("Hopper-v5", "2"): Path("pipeline/hopper_policy2"),
 }
 
 #: Mean return over 30 held-out episodes a committed policy must reach (SPEC §11).
