@@ -202,3 +202,51 @@ def test_committed_results_reshaped_into_runs_agree_with_rliable(rly, numpy_glob
     assert board.improvement[(a, b)].value == metrics.probability_of_improvement(
         scores[a], scores[b]
     )
+
+
+@pytest.fixture(scope="module")
+def committed_runs():
+    """Each metric's mild cells of every committed run (every policy of every environment, SPEC
+    §16), as the suite's leaderboard reads them."""
+    from oodrl.report.leaderboard import read_inputs
+    from oodrl.stages.leaderboard import results_files
+
+    files = results_files(ROOT)
+    missing = [paths[0] for paths in files.values() if not paths[0].is_file()]
+    if missing:
+        pytest.skip(f"the suite's results are DVC outputs not in this checkout: {missing[0]} …")
+    cells = read_inputs(files).cells
+    return {m: {c: v for c, v in cells[m].items() if c.tier == "mild"} for m in cells}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("metric", ["detection_rate@100", "matched_auroc"])
+def test_the_suites_policies_as_runs_agree_with_rliable(committed_runs, metric):
+    """The policies are the runs: on the mild tasks all policies share, the (runs × tasks)
+    matrices rliable takes give the leaderboard's point estimates to the last bits."""
+    from rliable import metrics
+
+    mild = committed_runs[metric]
+    policies = sorted({c.policy for c in mild})
+    tasks = sorted({(c.environment, c.fault) for c in mild})
+    shared = [(e, f) for e, f in tasks if all(Cell(e, p, f, "mild") in mild for p in policies)]
+    assert len(policies) == 3 and len(shared) > 30
+    cells = {
+        Cell(e, p, f, "mild"): mild[Cell(e, p, f, "mild")] for e, f in shared for p in policies
+    }
+    board = aggregate(cells, n_boot=10)
+    detectors = sorted(next(iter(cells.values())))
+    scores = {  # (runs, tasks), tasks in the leaderboard's sorted order
+        d: np.array(
+            [[np.mean(cells[Cell(e, p, f, "mild")][d]) for e, f in shared] for p in policies]
+        )
+        for d in detectors
+    }
+    for d, matrix in scores.items():
+        assert board.iqm[d].value == pytest.approx(metrics.aggregate_iqm(matrix), rel=1e-13)
+        assert board.mean[d].value == pytest.approx(metrics.aggregate_mean(matrix), rel=1e-13)
+        gap = metrics.aggregate_optimality_gap(matrix)
+        assert board.optimality_gap[d].value == pytest.approx(gap, rel=1e-13, abs=1e-15)
+    leader, second = board.ranked()[:2]
+    expected = metrics.probability_of_improvement(scores[leader], scores[second])
+    assert board.improvement[(leader, second)].value == pytest.approx(expected, rel=1e-13)
