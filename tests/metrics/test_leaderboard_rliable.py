@@ -159,10 +159,15 @@ def committed_results() -> dict[str, Path]:
     from oodrl.suite import PIPELINE_DIRS
 
     paths = {env: ROOT / d / "reports" / "results.yaml" for env, d in PIPELINE_DIRS.items()}
-    missing = [str(p.relative_to(ROOT)) for p in paths.values() if not p.is_file()]
+    skip_unless_checked_out(paths.values())
+    return paths
+
+
+def skip_unless_checked_out(paths) -> None:
+    """The suite's results are DVC outputs: a clean clone (CI's) has none."""
+    missing = [str(p.relative_to(ROOT)) for p in paths if not p.is_file()]
     if missing:
         pytest.skip(f"the suite's results are DVC outputs not in this checkout: {missing[0]} …")
-    return paths
 
 
 @pytest.mark.slow
@@ -212,9 +217,7 @@ def committed_runs():
     from oodrl.stages.leaderboard import results_files
 
     files = results_files(ROOT)
-    missing = [paths[0] for paths in files.values() if not paths[0].is_file()]
-    if missing:
-        pytest.skip(f"the suite's results are DVC outputs not in this checkout: {missing[0]} …")
+    skip_unless_checked_out(paths[0] for paths in files.values())
     cells = read_inputs(files).cells
     return {m: {c: v for c, v in cells[m].items() if c.tier == "mild"} for m in cells}
 
