@@ -100,6 +100,11 @@ def main() -> None:
             if getattr(args, key):
                 shared["benchmark"][key] = getattr(args, key)
 
+    def save(figures: dict) -> None:
+        """After each run, so that an interrupted benchmark keeps what it measured."""
+        if args.json:
+            args.json.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
+
     commit = head_commit(ROOT)
     figures: dict = {"commit": commit, "params": str(args.params), "pipelines": args.pipelines}
     with tempfile.TemporaryDirectory() as tmp:
@@ -114,35 +119,37 @@ def main() -> None:
         serial_s = sum(seconds for seconds, _ in serial.values())
         reference = locks(copies["serial"])
         print(f"serial: {serial_s:.1f} s", flush=True)
+        per_pipeline = {p: seconds for p, (seconds, _) in serial.items() if p != SUITE}
+        figures.update(serial_s=serial_s, per_pipeline_serial_s=per_pipeline)
+        save(figures)
 
         print(f"--workers {args.workers}:", flush=True)
         workers_s, workers = timed_suite_run(copies["workers"], workers=args.workers)
         assert locks(copies["workers"]) == reference, "--workers: locks differ from serial"
         restore_s = {t.pipeline: t.restore_seconds for t in workers.pipelines}
         figures.update(
-            serial_s=serial_s,
             workers=args.workers,
             workers_s=workers_s,
             head_after_tasks_s=workers.head_seconds,  # the last restore(s), the leaderboard
-            per_pipeline_serial_s={p: s for p, (s, _) in serial.items() if p != SUITE},
             per_pipeline_task_s={t.pipeline: t.seconds for t in workers.pipelines},
             per_pipeline_restore_s=restore_s,
         )
+        pipelines = [p for p in serial if p != SUITE]
+        times = [serial[p][0] for p in pipelines]
+        leaderboard_s = serial[SUITE][0]
+        critical = max(times) + leaderboard_s
+        restores = [restore_s[p] for p in pipelines]
+        simulated = {n: makespan(times, restores, leaderboard_s, n) for n in SIMULATED_NODES}
+        figures.update(leaderboard_s=leaderboard_s, critical_path_s=critical,
+                       simulated_makespan_s=simulated)  # fmt: skip
+        save(figures)
         if args.ray_nodes:
             print(f"Ray, {args.ray_nodes} one-CPU nodes:", flush=True)
             ray_s, ray = on_local_ray_cluster(copies["ray"], args.ray_nodes, Path(tmp) / "remote")
             assert locks(copies["ray"]) == reference, "Ray: locks differ from serial"
             figures.update(ray_nodes=args.ray_nodes, ray_s=ray_s, ray_head_s=ray.head_seconds,
                            ray_nodes_used=len({t.node for t in ray.pipelines}))  # fmt: skip
-
-    pipelines = [p for p in serial if p != SUITE]
-    times = [serial[p][0] for p in pipelines]
-    leaderboard_s = serial[SUITE][0]
-    critical = max(times) + leaderboard_s
-    restores = [restore_s[p] for p in pipelines]
-    simulated = {n: makespan(times, restores, leaderboard_s, n) for n in SIMULATED_NODES}
-    figures.update(leaderboard_s=leaderboard_s, critical_path_s=critical,
-                   simulated_makespan_s=simulated)  # fmt: skip
+            save(figures)
 
     print("\n| run | wall time | × serial |\n|---|---:|---:|")
     print(f"| serial: `dvc repro` per project, then the suite's | {serial_s:.1f} s | 1.00 |")
@@ -152,8 +159,6 @@ def main() -> None:
     for n, seconds in simulated.items():
         print(f"| simulated, {n} nodes | {seconds:.1f} s | {seconds / serial_s:.2f} "
               f"({seconds / critical:.2f}× the critical path {critical:.1f} s) |")  # fmt: skip
-    if args.json:
-        args.json.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
 
 
 if __name__ == "__main__":
