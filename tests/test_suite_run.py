@@ -15,7 +15,7 @@ from suite_repo import SUITE, checkout, head_commit, locks, serial_suite, two_en
 from typer.testing import CliRunner
 
 from oodrl.cli import app
-from oodrl.suite_run import run_suite
+from oodrl.suite_run import _unchanged_since_found_current, _up_to_date, run_suite
 
 pytestmark = pytest.mark.slow
 
@@ -65,8 +65,21 @@ def test_local_workers_leave_the_locks_of_a_serial_run(fresh_suite, serial_locks
 
     again = run_suite(fresh_suite, workers=2, echo=lines.append)
     assert (again.pipelines, again.head_ran) == ((), ())
-    assert "up to date" in lines[-1]
+    assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"  # DVC said so
     assert locks(fresh_suite) == serial_locks
+
+    # Then nothing DVC reads has changed: no `dvc status` is needed to know it.
+    run_suite(fresh_suite, workers=2, echo=lines.append)
+    assert "(no file DVC checks changed since they were found so)" in lines[-1]
+    # An output edited, even back to what it was, means asking DVC again.
+    results = fresh_suite / "pipeline" / "cartpole" / "reports" / "results.yaml"
+    kept = results.read_bytes()
+    results.write_bytes(kept + b"# edited\n")
+    assert not _up_to_date(fresh_suite / "pipeline" / "cartpole")  # DVC: stale
+    assert not _unchanged_since_found_current(fresh_suite, [".", "pipeline/cartpole", SUITE])
+    results.write_bytes(kept)
+    run_suite(fresh_suite, workers=2, echo=lines.append)
+    assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"
 
 
 def test_an_uncommitted_input_is_refused_before_anything_runs(fresh_suite):

@@ -224,11 +224,17 @@ def run_suite(
 
     pipelines = suite_pipelines(root)
     projects = [*pipelines, SUITE_DIR.as_posix()]
+    if _unchanged_since_found_current(root, projects):
+        echo(f"suite: all {len(projects)} projects are up to date (no file DVC checks changed "
+             f"since they were found so); nothing to run")  # fmt: skip
+        return SuiteRun((), (), time.perf_counter() - start)
+    watched = _watched_files(root, projects)  # before the checks: a change during them shows
     # One `dvc status` process a project, `workers` at a time: DVC's own index and output
     # checks take seconds a project (about 4 s for 198 stages), so they bound a no-op run.
     with ThreadPoolExecutor(max_workers=workers) as pool:
         current = list(pool.map(lambda project: _up_to_date(root / project), projects))
     if all(current):
+        _remember_current(root, projects, watched)
         echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
         return SuiteRun((), (), time.perf_counter() - start)
     _refuse_uncommitted_inputs(root, projects)
@@ -378,6 +384,80 @@ def _up_to_date(project: Path) -> bool:
     command = [sys.executable, "-m", "dvc", "status", "--quiet"]
     env = task_environment(Path(_git_root(project)))
     return subprocess.run(command, cwd=project, env=env, capture_output=True).returncode == 0
+
+
+#: What the suite's projects looked like when every `dvc status` found them current.
+FOUND_CURRENT = Path(".dvc", "tmp", "oodrl-suite-current.json")  # DVC's git-ignored scratch
+
+
+def _watched_files(root: Path, projects: list[str]) -> list[str]:
+    """Every path whose change `dvc status` of these projects could notice, relative to `root`:
+    each project's dvc.yaml, dvc.lock and .dvcignore, and every dep, params file and output its
+    lock names; a directory with every file and folder inside it (a folder's mtime moves when an
+    entry is added or removed). A project's locks name its paths, so while no watched file
+    changes, neither does this list."""
+    import yaml
+
+    watched: set[str] = set()
+    for project in projects:
+        watched.update(os.path.normpath(os.path.join(project, name)) for name in DVC_FILES)
+        lock_path = root / project / "dvc.lock"
+        if not lock_path.exists():
+            continue
+        lock = yaml.load(lock_path.read_text(), Loader=yaml.CSafeLoader) or {}
+        for stage in (lock.get("stages") or {}).values():
+            named = [e["path"] for e in [*stage.get("deps", []), *stage.get("outs", [])]]
+            for path in [*named, *stage.get("params", {})]:
+                watched.update(_with_contents(root, os.path.normpath(os.path.join(project, path))))
+    return sorted(watched)
+
+
+DVC_FILES = ("dvc.yaml", "dvc.lock", ".dvcignore")
+
+
+def _with_contents(root: Path, path: str) -> Iterator[str]:
+    yield path
+    for folder, subfolders, files in os.walk(root / path):
+        for name in [*subfolders, *files]:
+            yield Path(folder, name).relative_to(root).as_posix()
+
+
+def _signature(root: Path, paths: list[str]) -> list[list[int] | None]:
+    """(size, mtime, ctime, inode) of each path, None where there is none: the identity DVC's own
+    state database trusts to skip re-hashing a file, and its ctime besides."""
+    signature = []
+    for path in paths:
+        try:
+            found = os.stat(root / path)
+        except FileNotFoundError:
+            signature.append(None)
+            continue
+        signature.append([found.st_size, found.st_mtime_ns, found.st_ctime_ns, found.st_ino])
+    return signature
+
+
+def _remember_current(root: Path, projects: list[str], watched: list[str]) -> None:
+    import json
+
+    from oodrl.fileio import atomic_write_text
+
+    found = {"projects": projects, "paths": watched, "signature": _signature(root, watched)}
+    atomic_write_text(root / FOUND_CURRENT, json.dumps(found))
+
+
+def _unchanged_since_found_current(root: Path, projects: list[str]) -> bool:
+    """Whether every `dvc status` once found these projects current and no file it reads has
+    changed since: the stat of a few thousand paths instead of seconds of DVC a project. Any
+    doubt (no record, another suite, one changed file) means asking DVC again."""
+    import json
+
+    try:
+        found = json.loads((root / FOUND_CURRENT).read_text())
+    except (FileNotFoundError, ValueError):
+        return False
+    return found.get("projects") == projects and found.get("signature") == _signature(
+        root, found.get("paths", [])
+    )
 
 
 def _refuse_uncommitted_inputs(root: Path, projects: list[str]) -> None:
