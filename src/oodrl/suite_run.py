@@ -22,6 +22,7 @@ Two ways to share, chosen by what is configured:
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import re
@@ -219,7 +220,7 @@ def run_suite(
         raise ConfigError(f"--workers must be >= 1. Got {workers} instead.")
     if ray_address is not None:
         _check_reachable(ray_address)
-    from oodrl.fileio import atomic_write_bytes
+    from oodrl.fileio import atomic_write_bytes, atomic_write_text
     from oodrl.pipeline import SUITE_DIR
 
     pipelines = suite_pipelines(root)
@@ -228,13 +229,15 @@ def run_suite(
         echo(f"suite: all {len(projects)} projects are up to date (no file DVC checks changed "
              f"since they were found so); nothing to run")  # fmt: skip
         return SuiteRun((), (), time.perf_counter() - start)
-    watched = _watched_files(root, projects)  # before the checks: a change during them shows
+    watched = _watched_files(root, projects)
+    before = _signature(root, watched)  # before the checks: a change during them shows next time
     # One `dvc status` process a project, `workers` at a time: DVC's own index and output
     # checks take seconds a project (about 4 s for 198 stages), so they bound a no-op run.
     with ThreadPoolExecutor(max_workers=workers) as pool:
         current = list(pool.map(lambda project: _up_to_date(root / project), projects))
     if all(current):
-        _remember_current(root, projects, watched)
+        found = {"projects": projects, "paths": watched, "signature": before}
+        atomic_write_text(root / FOUND_CURRENT, json.dumps(found))
         echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
         return SuiteRun((), (), time.perf_counter() - start)
     _refuse_uncommitted_inputs(root, projects)
@@ -436,21 +439,10 @@ def _signature(root: Path, paths: list[str]) -> list[list[int] | None]:
     return signature
 
 
-def _remember_current(root: Path, projects: list[str], watched: list[str]) -> None:
-    import json
-
-    from oodrl.fileio import atomic_write_text
-
-    found = {"projects": projects, "paths": watched, "signature": _signature(root, watched)}
-    atomic_write_text(root / FOUND_CURRENT, json.dumps(found))
-
-
 def _unchanged_since_found_current(root: Path, projects: list[str]) -> bool:
     """Whether every `dvc status` once found these projects current and no file it reads has
     changed since: the stat of a few thousand paths instead of seconds of DVC a project. Any
     doubt (no record, another suite, one changed file) means asking DVC again."""
-    import json
-
     try:
         found = json.loads((root / FOUND_CURRENT).read_text())
     except (FileNotFoundError, ValueError):
