@@ -391,6 +391,8 @@ def _up_to_date(project: Path) -> bool:
 
 #: What the suite's projects looked like when every `dvc status` found them current.
 FOUND_CURRENT = Path(".dvc", "tmp", "oodrl-suite-current.json")  # DVC's git-ignored scratch
+#: A project's own files that `dvc status` reads, whatever its lock names.
+DVC_FILES = ("dvc.yaml", "dvc.lock", ".dvcignore")
 
 
 def _watched_files(root: Path, projects: list[str]) -> list[str]:
@@ -413,9 +415,6 @@ def _watched_files(root: Path, projects: list[str]) -> list[str]:
             for path in [*named, *stage.get("params", {})]:
                 watched.update(_with_contents(root, os.path.normpath(os.path.join(project, path))))
     return sorted(watched)
-
-
-DVC_FILES = ("dvc.yaml", "dvc.lock", ".dvcignore")
 
 
 def _with_contents(root: Path, path: str) -> Iterator[str]:
