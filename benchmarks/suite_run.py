@@ -14,6 +14,9 @@ CI protocol; `--params params.yaml` for the full one; --detectors/--injectors cu
 restores each project when its pipeline ends, one at a time (the restore times measured in 2),
 then runs the leaderboard (the serial run's time); the critical path is the longest pipeline plus
 the leaderboard.
+Both local runs also report their CPU seconds (every child process's user and system time): the
+serial run keeps more than one core busy at times (a stage's worker processes), so no run on N
+cores doing the same work beats its CPU seconds / N, whatever the scheduling.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ from __future__ import annotations
 import argparse
 import heapq
 import json
+import resource
 import tempfile
 import time
 from pathlib import Path
@@ -53,6 +57,12 @@ def makespan(seconds: list[float], restores: list[float], leaderboard: float, no
     for end, restore in sorted(zip(list_schedule(seconds, nodes), restores, strict=True)):
         head_free = max(head_free, end) + restore
     return head_free + leaderboard
+
+
+def children_cpu_s() -> float:
+    """User and system seconds of every child process waited for so far (theirs included)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
 
 
 def timed_suite_run(repo: Path, **how) -> tuple[float, object]:
@@ -113,23 +123,33 @@ def main() -> None:
             for name in ("serial", "workers", "ray")[: 3 if args.ray_nodes else 2]
         }
         print("serial:", flush=True)
+        cpu_before = children_cpu_s()
         serial = serial_build(copies["serial"], args.pipelines)
+        serial_cpu_s = children_cpu_s() - cpu_before
         for project, (seconds, ran) in serial.items():
             print(f"  {project}: {seconds:.1f} s ({len(ran)} stages)", flush=True)
         serial_s = sum(seconds for seconds, _ in serial.values())
         reference = locks(copies["serial"])
         print(f"serial: {serial_s:.1f} s", flush=True)
         per_pipeline = {p: seconds for p, (seconds, _) in serial.items() if p != SUITE}
-        figures.update(serial_s=serial_s, per_pipeline_serial_s=per_pipeline)
+        # The bound: the same CPU seconds spread over `workers` cores with no core ever idle.
+        bound = serial_cpu_s / (args.workers * serial_s)
+        print(f"serial: {serial_s:.1f} s, {serial_cpu_s:.1f} CPU s "
+              f"({serial_cpu_s / serial_s:.2f} cores busy on average)", flush=True)  # fmt: skip
+        figures.update(serial_s=serial_s, per_pipeline_serial_s=per_pipeline,
+                       serial_cpu_s=serial_cpu_s, workers_bound=bound)  # fmt: skip
         save(figures)
 
         print(f"--workers {args.workers}:", flush=True)
+        cpu_before = children_cpu_s()
         workers_s, workers = timed_suite_run(copies["workers"], workers=args.workers)
+        workers_cpu_s = children_cpu_s() - cpu_before
         assert locks(copies["workers"]) == reference, "--workers: locks differ from serial"
         restore_s = {t.pipeline: t.restore_seconds for t in workers.pipelines}
         figures.update(
             workers=args.workers,
             workers_s=workers_s,
+            workers_cpu_s=workers_cpu_s,
             head_after_tasks_s=workers.head_seconds,  # the last restore(s), the leaderboard
             per_pipeline_task_s={t.pipeline: t.seconds for t in workers.pipelines},
             per_pipeline_restore_s=restore_s,
@@ -151,14 +171,18 @@ def main() -> None:
                            ray_nodes_used=len({t.node for t in ray.pipelines}))  # fmt: skip
             save(figures)
 
-    print("\n| run | wall time | × serial |\n|---|---:|---:|")
-    print(f"| serial: `dvc repro` per project, then the suite's | {serial_s:.1f} s | 1.00 |")
-    print(f"| `--workers {args.workers}` | {workers_s:.1f} s | {workers_s / serial_s:.2f} |")
+    print("\n| run | wall time | × serial | CPU time |\n|---|---:|---:|---:|")
+    print(f"| serial: `dvc repro` per project, then the suite's | {serial_s:.1f} s | 1.00 "
+          f"| {serial_cpu_s:.1f} s |")  # fmt: skip
+    print(f"| `--workers {args.workers}` | {workers_s:.1f} s | {workers_s / serial_s:.2f} "
+          f"| {workers_cpu_s:.1f} s |")  # fmt: skip
+    print(f"| the serial run's CPU time on {args.workers} cores, none idle (a bound) "
+          f"| {bound * serial_s:.1f} s | {bound:.2f} | |")  # fmt: skip
     if args.ray_nodes:
-        print(f"| Ray, {args.ray_nodes} one-CPU nodes | {ray_s:.1f} s | {ray_s / serial_s:.2f} |")
+        print(f"| Ray, {args.ray_nodes} one-CPU nodes | {ray_s:.1f} s | {ray_s / serial_s:.2f} | |")
     for n, seconds in simulated.items():
         print(f"| simulated, {n} nodes | {seconds:.1f} s | {seconds / serial_s:.2f} "
-              f"({seconds / critical:.2f}× the critical path {critical:.1f} s) |")  # fmt: skip
+              f"({seconds / critical:.2f}× the critical path {critical:.1f} s) | |")  # fmt: skip
 
 
 if __name__ == "__main__":
