@@ -90,7 +90,9 @@ def main() -> None:
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     every = suite_pipelines(ROOT)
-    parser.add_argument("--pipelines", nargs="+", default=every, help="default: the suite")
+    parser.add_argument(
+        "--pipelines", nargs="+", default=every, help="default: the suite; always with the root's"
+    )
     parser.add_argument("--params", type=Path, default=ROOT / "ci" / "params.yaml")
     parser.add_argument("--detectors", nargs="+", help="benchmark.detectors (default: params')")
     parser.add_argument("--injectors", nargs="+", help="benchmark.injectors (default: params')")
@@ -115,16 +117,19 @@ def main() -> None:
         if args.json:
             args.json.write_text(json.dumps(figures, indent=2, sort_keys=True) + "\n")
 
+    # The root's pipeline is always one of the suite's (suite_pipelines): `oodrl suite run`
+    # builds it whatever --pipelines says, so the serial run must build it too.
+    pipelines = [".", *(p for p in args.pipelines if p != ".")]
     commit = head_commit(ROOT)
-    figures: dict = {"commit": commit, "params": str(args.params), "pipelines": args.pipelines}
+    figures: dict = {"commit": commit, "params": str(args.params), "pipelines": pipelines}
     with tempfile.TemporaryDirectory() as tmp:
         copies = {
-            name: suite_copy(ROOT, commit, Path(tmp) / name, args.pipelines, edit)
+            name: suite_copy(ROOT, commit, Path(tmp) / name, pipelines, edit)
             for name in ("serial", "workers", "ray")[: 3 if args.ray_nodes else 2]
         }
         print("serial:", flush=True)
         cpu_before = children_cpu_s()
-        serial = serial_build(copies["serial"], args.pipelines)
+        serial = serial_build(copies["serial"], pipelines)
         serial_cpu_s = children_cpu_s() - cpu_before
         for project, (seconds, ran) in serial.items():
             print(f"  {project}: {seconds:.1f} s ({len(ran)} stages)", flush=True)
@@ -154,11 +159,11 @@ def main() -> None:
             per_pipeline_task_s={t.pipeline: t.seconds for t in workers.pipelines},
             per_pipeline_restore_s=restore_s,
         )
-        pipelines = [p for p in serial if p != SUITE]
-        times = [serial[p][0] for p in pipelines]
+        built = [p for p in serial if p != SUITE]
+        times = [serial[p][0] for p in built]
         leaderboard_s = serial[SUITE][0]
         critical = max(times) + leaderboard_s
-        restores = [restore_s[p] for p in pipelines]
+        restores = [restore_s[p] for p in built]
         simulated = {n: makespan(times, restores, leaderboard_s, n) for n in SIMULATED_NODES}
         figures.update(leaderboard_s=leaderboard_s, critical_path_s=critical,
                        simulated_makespan_s=simulated)  # fmt: skip
