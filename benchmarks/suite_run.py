@@ -135,7 +135,6 @@ def main() -> None:
             print(f"  {project}: {seconds:.1f} s ({len(ran)} stages)", flush=True)
         serial_s = sum(seconds for seconds, _ in serial.values())
         reference = locks(copies["serial"])
-        print(f"serial: {serial_s:.1f} s", flush=True)
         per_pipeline = {p: seconds for p, (seconds, _) in serial.items() if p != SUITE}
         # The bound: the same CPU seconds spread over `workers` cores with no core ever idle.
         bound = serial_cpu_s / (args.workers * serial_s)
@@ -159,11 +158,10 @@ def main() -> None:
             per_pipeline_task_s={t.pipeline: t.seconds for t in workers.pipelines},
             per_pipeline_restore_s=restore_s,
         )
-        built = [p for p in serial if p != SUITE]
-        times = [serial[p][0] for p in built]
+        times = list(per_pipeline.values())
         leaderboard_s = serial[SUITE][0]
         critical = max(times) + leaderboard_s
-        restores = [restore_s[p] for p in built]
+        restores = [restore_s[p] for p in per_pipeline]
         simulated = {n: makespan(times, restores, leaderboard_s, n) for n in SIMULATED_NODES}
         figures.update(leaderboard_s=leaderboard_s, critical_path_s=critical,
                        simulated_makespan_s=simulated)  # fmt: skip
