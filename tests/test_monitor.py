@@ -176,7 +176,7 @@ def test_the_monitor_command_prints_alarms_and_a_summary(monkeypatch):
     summary = result.output.strip().splitlines()[-1]
     assert "onset at step 40" in summary and "false alarms before the onset" in summary
     bad = CliRunner().invoke(app, [*args, "--fault", "no_such_fault"])
-    assert bad.exit_code != 0 and "Unknown injector 'no_such_fault'" in bad.output
+    assert bad.exit_code == 2 and "'no_such_fault' is not a registered fault" in bad.output
 
 
 def test_a_detector_fitted_by_the_monitor_alarms_by_the_per_stream_rule():

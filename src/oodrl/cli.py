@@ -10,11 +10,11 @@ import functools
 import os
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, NoReturn
 
 import typer
 
-from oodrl.errors import ConfigError, OodrlError
+from oodrl.errors import ConfigError, OodrlError, RegistryError
 from oodrl.parallel import THREAD_POOL_VARIABLES
 
 # One thread per library pool (why: oodrl.parallel), set before numpy or torch is imported.
@@ -33,8 +33,21 @@ PathOption = functools.partial(typer.Option, help="path (dvc.yaml passes it)")
 
 
 def _fail(error: OodrlError) -> None:
-    typer.echo(f"error: {error}", err=True)
-    raise typer.Exit(2 if isinstance(error, ConfigError) else 1)
+    """SPEC §22: one line, exit 2 for a usage or params error, 1 for a runtime failure; the
+    traceback only with OODRL_DEBUG=1."""
+    if os.environ.get(DEBUG_VARIABLE) == "1":
+        raise error
+    typer.echo(f"error: {one_line(str(error))}", err=True)
+    # An unknown component name or import path is a usage or params error too.
+    raise typer.Exit(2 if isinstance(error, ConfigError | RegistryError) else 1)
+
+
+DEBUG_VARIABLE = "OODRL_DEBUG"
+
+
+def one_line(message: str) -> str:
+    """A message as one line: a library's multi-line text would read as several errors."""
+    return " ".join(line.strip() for line in message.splitlines() if line.strip())
 
 
 def _print_version(requested: bool) -> None:
@@ -224,9 +237,7 @@ def monitor(
         int, typer.Option(min=1, help="N > 1: rates over seeds seed..seed+N-1 (needs --fault)")
     ] = 1,
     k: Annotated[int, typer.Option("--k", min=0, help="detection window: [onset, onset+K]")] = 100,
-    alpha: Annotated[
-        float, typer.Option(min=0.0, max=1.0, help="per-stream false-alarm budget")
-    ] = 0.05,
+    alpha: Annotated[float, typer.Option(help="per-stream false-alarm budget, in (0, 1)")] = 0.05,
 ) -> None:
     """Run the committed policy under the OOD monitor: alarms as they happen, then a summary;
     with --episodes N, the detection rate, delays and false alarms over N seeds. A detector
@@ -306,8 +317,11 @@ def show(
     """Render the tables of a results or sweep file in the terminal; of a run_meta.yaml, each
     detector's fit time, fitted size and µs per streamed step beside its matched AUROC."""
     from oodrl.report.show import show as render
+    from oodrl.report.show import stale_warning
 
     typer.echo(render(path, max_us_per_step))
+    if warning := stale_warning(path):
+        typer.echo(warning, err=True)
 
 
 @command("new")
@@ -680,5 +694,54 @@ def readme_table(
     typer.echo(f"{readme}: headline table updated from {headline}")
 
 
-def main() -> None:  # pragma: no cover - console entry point
-    sys.exit(app())
+def main() -> None:
+    """The console entry point: every way out of a command follows SPEC §22's one rule.
+
+    A usage error (click's) is one line and exit 2; SIGTERM and SIGHUP unwind like Ctrl-C, so the
+    `finally` blocks that remove temporary files run and nothing half-written is left; an error
+    oodrl did not expect is one line naming it and exit 1, its traceback only with OODRL_DEBUG=1.
+    """
+    import signal
+
+    received: list[signal.Signals] = []
+
+    def interrupt(signum: int, frame: object) -> None:
+        received.append(signal.Signals(signum))
+        raise KeyboardInterrupt
+
+    def interrupted() -> NoReturn:
+        # typer turns a KeyboardInterrupt into exit code 130 silently; say which signal it was.
+        name = received[0] if received else signal.SIGINT
+        typer.echo(f"error: interrupted ({name.name})", err=True)
+        sys.exit(128 + name.value)
+
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, interrupt)
+    debug = os.environ.get(DEBUG_VARIABLE) == "1"
+    try:
+        code = app(standalone_mode=False)
+    except typer.TyperException as error:  # click's usage errors (exit code 2), as typer has them
+        context = getattr(error, "ctx", None)
+        where = context.command_path if context else "oodrl"
+        if message := one_line(error.format_message()):  # none when the help was printed instead
+            typer.echo(f"error: {where}: {message} (see `{where} --help`)", err=True)
+        sys.exit(error.exit_code)
+    except (KeyboardInterrupt, typer.Abort):
+        interrupted()
+    except OodrlError as error:  # raised outside a command, e.g. by a callback
+        try:
+            _fail(error)
+        except typer.Exit as done:
+            sys.exit(done.exit_code)
+    except Exception as error:
+        if debug:
+            raise
+        typer.echo(
+            f"error: internal error, {type(error).__name__}: {one_line(str(error))} (a bug in "
+            f"oodrl or a plugin; {DEBUG_VARIABLE}=1 shows the traceback)",
+            err=True,
+        )
+        sys.exit(1)
+    if received:
+        interrupted()
+    sys.exit(code if isinstance(code, int) else 0)

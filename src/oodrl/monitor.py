@@ -57,6 +57,9 @@ def as_detector(detector: BaseDetector | str | Path) -> BaseDetector:
     if isinstance(detector, str | Path):
         from oodrl.store import load_detector
 
+        if not Path(detector).is_file():
+            raise ConfigError(f"--detector {detector}: no such file; pass a detector file written "
+                              "by `oodrl fit` or a registered detector's name.")  # fmt: skip
         detector = load_detector(Path(detector), stage="fit")
     if getattr(detector, "threshold_", None) is None:
         raise NotFittedError(
@@ -208,15 +211,36 @@ def run_monitor(
     `threshold_rule`) on max(`fit_streams`, ⌈1/α⌉ − 1) more (seeds 10_000 on, apart from the
     monitored seeds). Policies are read under the project `root`.
     """
+    onset = _checked_onset(fault, onset, steps) if fault is not None else None
     adapter, policy, detector = _monitor_setup(
         env_id, detector, detector_params, fit_streams, steps, alpha, root
     )
-    onset = (default_onset(steps) if onset is None else onset) if fault is not None else None
     summary = _run_episode(
         adapter, policy, detector, fault, severity, onset, injector_params, steps, seed, echo
     )
     echo(summary.line())
     return summary
+
+
+def _checked_onset(fault: str, onset: int | None, steps: int) -> int:
+    """The onset of a live fault (default ⌊steps/3⌋), refused before any simulation when the
+    fault cannot run live or the onset lies outside the episode (SPEC §22)."""
+    from oodrl.injectors import INJECTORS
+
+    live = [name for name in INJECTORS.names() if INJECTORS.get(name).mode == "online"]
+    if fault not in live:
+        what = (
+            f"a post-hoc fault (it rewrites recorded data); live it is 'live_{fault}'"
+            if f"live_{fault}" in live
+            else "not a registered fault"
+        )
+        raise ConfigError(f"--fault {fault!r} is {what}. The monitor runs live faults: "
+                          f"{', '.join(live)}.")  # fmt: skip
+    onset = default_onset(steps) if onset is None else onset
+    if not 0 <= onset < steps:
+        raise ConfigError(f"--onset must be a step of the episode, 0 <= onset < --steps "
+                          f"({steps}); got {onset}.")  # fmt: skip
+    return onset
 
 
 def _monitor_setup(
@@ -229,6 +253,7 @@ def _monitor_setup(
     root: Path,
 ) -> tuple[EnvironmentAdapter, Any, BaseDetector]:
     """The adapter, the committed policy, and the detector (fitted here if named)."""
+    from oodrl.detectors import DETECTORS
     from oodrl.envs import ENVIRONMENTS
     from oodrl.policies.load import load_policy
     from oodrl.suite import policy_path
@@ -238,6 +263,10 @@ def _monitor_setup(
         policy_path(env_id, root), "greedy", None, adapter.state_dim, adapter.action_size
     )
     if isinstance(detector, str) and not Path(detector).suffix:
+        if detector not in DETECTORS.names():
+            raise ConfigError(f"--detector {detector!r} is neither a registered detector "
+                              f"({', '.join(DETECTORS.names())}) nor a file written by `oodrl "
+                              "fit` (a .pkl path).")  # fmt: skip
         params = {"threshold_rule": "episode_max", "alpha": alpha, **(detector_params or {})}
         detector = fitted_on_clean_streams(adapter, policy, detector, params, fit_streams, steps)
     return adapter, policy, as_detector(detector)
@@ -404,10 +433,10 @@ def run_monitor_episodes(
     share of clean episodes with any alarm."""
     from oodrl.metrics.operating import first_raise
 
+    onset = _checked_onset(fault, onset, steps)
     adapter, policy, detector = _monitor_setup(
         env_id, detector, detector_params, fit_streams, steps, alpha, root
     )
-    onset = default_onset(steps) if onset is None else onset
     seeds = range(seed, seed + episodes)
     raised, clean_alarms, ended = [], [], 0
     never = np.iinfo(np.int64).max  # a first raise that never comes: beyond any K

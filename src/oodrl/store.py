@@ -130,22 +130,43 @@ def _remove(path: Path) -> None:
         path.unlink(missing_ok=True)
 
 
-def rerun_hint(stage: str | None) -> str:
-    """How to rebuild a broken output: the one hint every error message uses.
+def restore_hint(path: Path | str, stage: str | None) -> str:
+    """How to mend a missing or broken output: the one hint every error message uses (SPEC §22).
 
-    `-s` (single item) re-runs that stage alone. Plain `-f` would force every upstream stage
-    too, train_policy included: 13 minutes, and it overwrites the committed policy.
+    A committed output is restored, never recomputed: `dvc checkout` copies its bytes from the
+    cache in a second (the outputs a failed stage deleted come back with it), `dvc pull` fetches
+    them where this cache lacks them. Rebuilding comes last, for an output no cache holds: `-s`
+    re-runs that stage alone (plain `-f` would force every upstream stage too, train_policy
+    included: 13 minutes, and it overwrites the committed policy).
     """
-    if not stage:
-        return "re-run the stage that writes it"
-    return f"re-run only that stage with `dvc repro -s -f {stage_address(stage)}`"
+    target = project_path(Path(path))
+    rebuild = f"`dvc repro -s -f {stage_address(stage)}`" if stage else "the stage that writes it"
+    return (
+        f"restore it with `dvc checkout --force {target}` (`dvc pull {target}` where this cache "
+        f"lacks it); only if no cache holds it, rebuild it with {rebuild}"
+    )
+
+
+def _project_root(here: Path) -> Path:
+    return next((d for d in (here, *here.parents) if (d / ".dvc").is_dir()), here)
+
+
+def project_path(path: Path) -> str:
+    """`path` as DVC names it from the repository root (a stage runs in its pipeline's
+    directory, maybe pipeline/<env>); as given when it lies outside the repository."""
+    here = Path.cwd()
+    absolute = path if path.is_absolute() else here / path
+    try:
+        return absolute.relative_to(_project_root(here)).as_posix()
+    except ValueError:
+        return path.as_posix()
 
 
 def stage_address(stage: str) -> str:
     """`stage` ('collect_eval', or 'detectors/<d>/dvc.yaml:fit') as DVC names it from the
     repository root: a stage command runs in its pipeline's directory, maybe pipeline/<env>."""
     here = Path.cwd()
-    root = next((d for d in (here, *here.parents) if (d / ".dvc").is_dir()), here)
+    root = _project_root(here)
     if root == here:
         return stage
     file, _, name = stage.rpartition(":")
@@ -161,20 +182,23 @@ def _open_group(path: Path, expected_format: str, stage: str | None):
     if path.is_dir():
         raise StoreError(
             f"{path}: a directory store from an older oodrl (stores are now single ZIP "
-            f"files); {rerun_hint(stage)}."
+            f"files); {restore_hint(path, stage)}."
         )
     if not path.is_file():
-        raise StoreError(f"{path}: store is missing; {rerun_hint(stage)}.")
+        raise StoreError(f"{path}: store is missing; {restore_hint(path, stage)}.")
     try:
         store = ZipStore(path, mode="r")
         root = zarr.open_group(store, mode="r", zarr_format=3)
         found = root.attrs.get("format")
     except Exception as error:  # zipfile and zarr raise many kinds on damaged files
-        raise StoreError(f"{path}: unreadable store ({error}); {rerun_hint(stage)}.") from None
+        raise StoreError(
+            f"{path}: unreadable store ({error}); {restore_hint(path, stage)}."
+        ) from None
     if found != expected_format:
         store.close()
         raise StoreError(
-            f"{path}: not an {expected_format} store (format {found!r}); {rerun_hint(stage)}."
+            f"{path}: not an {expected_format} store (format {found!r}); "
+            f"{restore_hint(path, stage)}."
         )
     return root, store
 
@@ -187,12 +211,13 @@ def _read_arrays(group, path: Path, stage: str | None) -> dict[str, np.ndarray]:
             data = np.asarray(group[name][...])
         except Exception as error:
             raise StoreError(
-                f"{path}: array '{group.path}/{name}' is unreadable ({error}); {rerun_hint(stage)}."
+                f"{path}: array '{group.path}/{name}' is unreadable ({error}); "
+                f"{restore_hint(path, stage)}."
             ) from None
         if _digest(data) != digest:
             raise StoreError(
                 f"{path}: array '{group.path}/{name}' is truncated or corrupt (checksum "
-                f"mismatch); {rerun_hint(stage)}."
+                f"mismatch); {restore_hint(path, stage)}."
             )
         arrays[name] = data
     return arrays
@@ -316,7 +341,7 @@ def load_detector(path: Path, stage: str | None):
     from oodrl.registry import add_project_dir_to_path
 
     path = Path(path)
-    hint = rerun_hint(stage)
+    hint = restore_hint(path, stage)
     if not path.is_file():
         raise StoreError(f"{path}: fitted detector is missing; {hint}.")
     add_project_dir_to_path()
@@ -330,7 +355,8 @@ def load_detector(path: Path, stage: str | None):
     changed = [f"{k} {saved[k]} -> {current.get(k)}" for k in saved if saved[k] != current.get(k)]
     if changed:
         warnings.warn(
-            f"{path} was written with other versions ({', '.join(changed)}); {hint} to refit.",
+            f"{path} was written with other versions ({', '.join(changed)}); refit it with "
+            f"`dvc repro -s -f {stage_address(stage) if stage else 'fit'}`.",
             stacklevel=2,
         )
     return record["detector"]

@@ -22,7 +22,7 @@ from oodrl import yamlio
 from oodrl.config import Params
 from oodrl.core.trajectory import TrajectorySet
 from oodrl.errors import StoreError
-from oodrl.store import rerun_hint
+from oodrl.store import restore_hint
 
 #: Where a pipeline keeps each fault's impact document, tier streams and their scores.
 IMPACT_DIR = "data/impact"
@@ -37,12 +37,12 @@ def impact_path(impact_dir: Path, fault: str) -> Path:
 def read_impact(path: Path, fault: str) -> dict[str, Any]:
     """One fault's record of an impact document (`oodrl impact --injector <fault>`)."""
     if not Path(path).is_file():
-        raise StoreError(f"{path}: missing; {rerun_hint(f'impact@{fault}')}.")
+        raise StoreError(f"{path}: missing; {restore_hint(path, f'impact@{fault}')}.")
     document = yamlio.load(Path(path).read_text())
     faults = document.get("faults") or {}
     if fault not in faults:
         raise StoreError(
-            f"{path}: holds no impact curve of {fault!r}; {rerun_hint(f'impact@{fault}')}."
+            f"{path}: holds no impact curve of {fault!r}; {restore_hint(path, f'impact@{fault}')}."
         )
     return {**document, "fault": faults[fault]}
 

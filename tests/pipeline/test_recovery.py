@@ -15,7 +15,7 @@ from oodrl.errors import OodrlError
 from oodrl.layout import detector_stage
 from oodrl.metrics.results import read_results_file
 from oodrl.stages.train import RETRAIN_COMMAND
-from oodrl.store import load_detector, read_trajectories, rerun_hint
+from oodrl.store import load_detector, read_trajectories, restore_hint
 from oodrl.testing.pipeline import repro, run
 
 pytestmark = pytest.mark.slow
@@ -53,27 +53,27 @@ def _commands(message: str) -> list[str]:
 def test_every_hint_reruns_only_the_broken_stage(repo):
     detector, injector = DETECTORS[0], INJECTORS[0]
     fit = detector_stage(detector, "fit")
-    broken = {  # stage -> the error its missing output raises in the stage that reads it
-        "collect_eval": lambda: read_trajectories(repo / "absent.zarr", stage="collect_eval"),
-        fit: lambda: load_detector(repo / "absent.pkl", stage=fit),
-        "metrics": lambda: read_results_file(repo / "absent.yaml"),
+    broken = {  # stage -> its missing output and the error the stage that reads it raises
+        "collect_eval": ("absent.zarr", lambda p: read_trajectories(p, stage="collect_eval")),
+        fit: ("absent.pkl", lambda p: load_detector(p, stage=fit)),
+        "metrics": ("absent.yaml", read_results_file),
     }
-    for stage, fail in broken.items():
+    for stage, (name, fail) in broken.items():
         with pytest.raises(OodrlError) as info:
-            fail()
-        assert rerun_hint(stage) in str(info.value)
+            fail(repo / name)
+        assert restore_hint(repo / name, stage) in str(info.value)
     stages = [
         "collect_id", "collect_eval", f"collect_ood@{injector}", f"collect_sweep@{injector}",
         fit, detector_stage(detector, "score_clean"), detector_stage(detector, "score", injector),
         "metrics", "render",
     ]  # fmt: skip
     for stage in stages:
-        (command,) = _commands(rerun_hint(stage))
+        (command,) = _commands(restore_hint("absent", stage))
         assert _dry_run(repo, command) == [stage], command
 
 
 def test_no_message_in_the_code_hints_plain_force(repo_root):
-    """Every hint comes from `rerun_hint`; `dvc repro -f` alone would retrain the policy."""
+    """Every hint comes from `restore_hint`; `dvc repro -f` alone would retrain the policy."""
     sources = sorted((repo_root / "src" / "oodrl").rglob("*.py"))
     offenders = [p.name for p in sources if re.search(r"dvc repro -f", p.read_text())]
     assert offenders == []

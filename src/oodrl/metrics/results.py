@@ -29,7 +29,7 @@ from oodrl.layout import (
 )
 from oodrl.parallel import ordered_map
 from oodrl.progress import progress_bar
-from oodrl.store import read_scores, rerun_hint, severity_key
+from oodrl.store import read_scores, restore_hint, severity_key
 
 Summary = dict[str, dict[str, float | int]]
 
@@ -127,7 +127,7 @@ def nominal_false_alarms(params: Params) -> dict[str, dict[str, Any]]:
 def read_results_file(path: Path) -> Any:
     """results.yaml or sweep_results.yaml, as the metrics stage wrote it."""
     if not Path(path).is_file():
-        raise StoreError(f"{path}: missing; {rerun_hint('metrics')}.")
+        raise StoreError(f"{path}: missing; {restore_hint(path, 'metrics')}.")
     return yamlio.load(Path(path).read_text())
 
 

@@ -73,3 +73,30 @@ def show(path: str | Path, max_us_per_step: float | None = None) -> str:
     results_path = Path(path).with_name("results.yaml")
     results = load_report(results_path)[1] if results_path.is_file() else None
     return cost_table(data["cost"], results, max_us_per_step)
+
+
+def stale_warning(path: str | Path) -> str | None:
+    """A warning when DVC finds that a pipeline output's inputs changed since it was computed
+    (SPEC §22: no number shown without a word when it may be stale); None when current, or
+    when the file is not a DVC output (then nothing is known of its inputs)."""
+    import os
+    import shutil
+    import subprocess
+
+    path = Path(path).resolve()
+    project = next((d for d in path.parents if (d / "dvc.yaml").is_file()), None)
+    dvc = shutil.which("dvc")
+    if project is None or dvc is None:
+        return None
+    target = path.relative_to(project).as_posix()
+    done = subprocess.run(
+        [dvc, "status", "--quiet", "--with-deps", target],
+        cwd=project, capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    if done.returncode == 0 or "Traceback" in done.stderr or "ERROR" in done.stderr:
+        return None  # current, or not an output DVC tracks
+    where = os.path.relpath(project)
+    return (
+        f"warning: {target} is stale: its stage or an input changed since it was computed "
+        f"(`dvc status --with-deps {target}`{'' if where == '.' else f' in {where}'} lists what)"
+    )
