@@ -45,7 +45,7 @@ from oodrl.core.detector import BaseDetector
 from oodrl.core.injector import Fault
 from oodrl.core.spec import default_onset
 from oodrl.core.stream import StepScore
-from oodrl.errors import ConfigError, NotFittedError
+from oodrl.errors import ConfigError, NotFittedError, StoreError
 from oodrl.metrics.operating import DEFAULT_ALPHA, OperatingPoint
 
 #: `on_alarm(record)`: called once for every alarmed step score.
@@ -60,7 +60,12 @@ def as_detector(detector: BaseDetector | str | Path) -> BaseDetector:
         if not Path(detector).is_file():
             raise ConfigError(f"--detector {detector}: no such file; pass a detector file written "
                               "by `oodrl fit` or a registered detector's name.")  # fmt: skip
-        detector = load_detector(Path(detector), stage="fit")
+        try:
+            detector = load_detector(Path(detector), stage=None)
+        except StoreError:  # a file the user named: a usage error, and no stage to re-run
+            raise ConfigError(
+                f"--detector {detector}: not a detector file written by `oodrl fit`."
+            ) from None
     if getattr(detector, "threshold_", None) is None:
         raise NotFittedError(
             f"{detector.name} has no alarm threshold: call calibrate() on held-out clean "
@@ -258,15 +263,16 @@ def _monitor_setup(
     from oodrl.policies.load import load_policy
     from oodrl.suite import policy_path
 
+    named = isinstance(detector, str) and not Path(detector).suffix
+    if named and detector not in DETECTORS.names():
+        raise ConfigError(f"--detector {detector!r} is neither a registered detector "
+                          f"({', '.join(DETECTORS.names())}) nor a file written by `oodrl "
+                          "fit` (a .pkl path).")  # fmt: skip
     adapter = ENVIRONMENTS.get(env_id)()
     policy = load_policy(
         policy_path(env_id, root), "greedy", None, adapter.state_dim, adapter.action_size
     )
-    if isinstance(detector, str) and not Path(detector).suffix:
-        if detector not in DETECTORS.names():
-            raise ConfigError(f"--detector {detector!r} is neither a registered detector "
-                              f"({', '.join(DETECTORS.names())}) nor a file written by `oodrl "
-                              "fit` (a .pkl path).")  # fmt: skip
+    if named:
         params = {"threshold_rule": "episode_max", "alpha": alpha, **(detector_params or {})}
         detector = fitted_on_clean_streams(adapter, policy, detector, params, fit_streams, steps)
     return adapter, policy, as_detector(detector)

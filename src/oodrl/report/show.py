@@ -24,7 +24,8 @@ def load_report(path: str | Path) -> tuple[str, dict[str, Any]]:
     if not path.is_file():
         raise StoreError(
             f"No report file at '{path}'. Pass a results.yaml, sweep_results.yaml or "
-            "run_meta.yaml (the pipeline writes them to reports/; run `dvc repro` first)."
+            "run_meta.yaml (the pipeline writes them to reports/: `dvc checkout` restores a built "
+            "one from the cache, `dvc pull` from a remote; `dvc repro` builds one that none holds)."
         )
     try:
         data = yamlio.load(path.read_text(encoding="utf-8"))

@@ -1,0 +1,207 @@
+"""Hostile inputs to the verbs that compute (SPEC §22): bad options of the monitor, corrupted
+stores and pickles, a params file that is not YAML, and stages interrupted at random points.
+Each case: its exit code, one line, no traceback, and no file of the project written or lost
+(an interrupted stage leaves its output absent or complete, never half-written)."""
+
+from __future__ import annotations
+
+import random
+import shutil
+import signal
+import subprocess
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+from hostile_cli import OODRL, assert_one_line_error, oodrl, snapshot
+
+from oodrl.store import read_trajectories
+
+pytestmark = pytest.mark.slow
+
+DETECTOR = "mahalanobis_distance"
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory, repo_root) -> Path:
+    """A pipeline's working directory at CI params: params, the committed policy, the clean
+    sets and one fitted detector, made by the stage verbs themselves."""
+    root = tmp_path_factory.mktemp("project")
+    done = oodrl("check-params", str(repo_root / "ci/params.yaml"), "--merged",
+                 str(root / "params.yaml"), cwd=repo_root)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    (root / "models").mkdir()
+    shutil.copy(repo_root / "models/policy.pt", root / "models/policy.pt")
+    for verb, out in (("collect-id", "data/id.zarr"), ("collect-eval", "data/eval.zarr")):
+        done = oodrl(verb, "--policy", "models/policy.pt", "--out", out, cwd=root)
+        assert done.returncode == 0, done.stderr
+    done = oodrl("fit", DETECTOR, "--id", "data/id.zarr", "--out", "models/d.pkl", cwd=root)
+    assert done.returncode == 0, done.stderr
+    return root
+
+
+@pytest.fixture
+def workdir(project, tmp_path) -> Path:
+    """A private copy of the project, so that a case may break its files."""
+    copy = tmp_path / "work"
+    shutil.copytree(project, copy, ignore=shutil.ignore_patterns("run_meta.yaml"))
+    return copy
+
+
+def _refused(workdir: Path, code: int, args: list[str], *needles: str) -> str:
+    before = snapshot(workdir)
+    line = assert_one_line_error(oodrl(*args, cwd=workdir), code, *needles)
+    after = {k: v for k, v in snapshot(workdir).items() if not k.endswith("run_meta.yaml")}
+    assert after == {k: v for k, v in before.items() if not k.endswith("run_meta.yaml")}
+    return line
+
+
+MONITOR = ["monitor", "--env", "CartPole-v1", "--steps", "40"]
+MONITOR_CASES = [
+    ("post-hoc fault", ["--detector", "cusum", "--fault", "gaussian_state_noise"],
+     ["live_gaussian_state_noise"]),
+    ("unknown fault", ["--detector", "cusum", "--fault", "nosuch"], ["not a registered fault"]),
+    ("negative onset", ["--detector", "cusum", "--fault", "stuck_actuator", "--onset", "-5"],
+     ["--onset", "got -5"]),
+    ("onset past the episode", ["--detector", "cusum", "--fault", "stuck_actuator", "--onset",
+                                "40"], ["--onset", "(40)"]),
+    ("unknown detector", ["--detector", "nosuch"], ["neither a registered detector"]),
+    ("missing pickle", ["--detector", "absent.pkl"], ["absent.pkl: no such file"]),
+    ("a pickle that is not a detector", ["--detector", "pyproject.toml"],
+     ["pyproject.toml: not a detector file"]),
+    ("alpha 0", ["--detector", "cusum", "--alpha", "0"], ["--alpha must be in (0, 1)"]),
+    ("alpha 1", ["--detector", "cusum", "--alpha", "1"], ["--alpha must be in (0, 1)"]),
+    ("episodes without a fault", ["--detector", "cusum", "--episodes", "3"], ["--fault"]),
+    ("unknown environment", ["--detector", "cusum", "--env", "Nope-v0"], ["Nope-v0"]),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("case", "args", "needles"), MONITOR_CASES, ids=[c[0] for c in MONITOR_CASES]
+)
+def test_monitor_refuses_in_one_line_with_exit_2(case, args, needles, repo_root):
+    """From the repository root, where the monitor finds the committed policies; it writes
+    nothing there that git would see."""
+    status = ["git", "status", "--porcelain", "--", "pipeline", "models", "data"]
+    before = subprocess.run(status, cwd=repo_root, capture_output=True, text=True).stdout
+    assert_one_line_error(oodrl(*MONITOR, *args, cwd=repo_root), 2, *needles)
+    assert subprocess.run(status, cwd=repo_root, capture_output=True, text=True).stdout == before
+
+
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+
+
+def _corrupt_a_chunk(path: Path) -> None:
+    """Flip bytes inside one array chunk, keeping the ZIP readable: only the checksum tells."""
+    with zipfile.ZipFile(path) as archive:
+        entries = {info.filename: archive.read(info) for info in archive.infolist()}
+    chunk = max((name for name in entries if "/c/" in name), key=lambda n: len(entries[n]))
+    data = bytearray(entries[chunk])
+    data[len(data) // 2] ^= 0xFF
+    entries[chunk] = bytes(data)
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_STORED) as archive:
+        for name, content in entries.items():
+            archive.writestr(name, content)
+
+
+SCORE = ["score", DETECTOR, "--model", "models/d.pkl", "--scores", "scores", "--eval"]
+CORRUPTIONS = [
+    ("truncated store", "data/eval.zarr", _truncate, "unreadable store"),
+    ("corrupt chunk", "data/eval.zarr", _corrupt_a_chunk, "array '/states'"),
+    ("truncated pickle", "models/d.pkl", _truncate, "not a readable oodrl detector"),
+    ("empty pickle", "models/d.pkl", lambda p: p.write_bytes(b""), "not a readable oodrl"),
+    ("a store that is a pickle", "data/eval.zarr", lambda p: p.write_bytes(b"\x80\x04N."),
+     "unreadable store"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("case", "file", "damage", "what"), CORRUPTIONS, ids=[c[0] for c in CORRUPTIONS]
+)
+def test_a_corrupted_input_names_it_and_restores_before_rebuilding(
+    case, file, damage, what, workdir
+):
+    damage(workdir / file)
+    line = _refused(workdir, 1, [*SCORE, "data/eval.zarr"], file, what)
+    assert line.index(f"`dvc checkout --force {file}`") < line.index("dvc repro")
+    assert not (workdir / "scores").exists()
+
+
+PARAMS_CASES = [
+    ("not YAML", "env: [unclosed\n", "params.yaml"),
+    ("a YAML list", "- 1\n- 2\n", "params.yaml"),
+    ("empty", "", "params.yaml"),
+]
+
+
+@pytest.mark.parametrize(("case", "text", "needle"), PARAMS_CASES, ids=[c[0] for c in PARAMS_CASES])
+def test_a_params_file_that_is_not_params_is_one_line_and_exit_2(case, text, needle, workdir):
+    (workdir / "params.yaml").write_text(text)
+    _refused(workdir, 2, ["fit", DETECTOR, "--id", "data/id.zarr", "--out", "x.pkl"], needle)
+
+
+STAGE_CASES = [
+    ("unknown detector", ["fit", "nosuch", "--id", "data/id.zarr", "--out", "x.pkl"], 2, "nosuch"),
+    ("unknown injector", ["collect-ood", "nosuch", "--policy", "models/policy.pt", "--eval",
+                          "data/eval.zarr", "--out", "x.zarr"], 2, "nosuch"),
+    ("score with no set", ["score", DETECTOR, "--model", "models/d.pkl", "--scores", "s"], 2,
+     "--eval"),
+    ("missing policy", ["collect-eval", "--policy", "absent.pt", "--out", "x.zarr"], 1,
+     "absent.pt"),
+    ("policy that is not one", ["collect-eval", "--policy", "params.yaml", "--out", "x.zarr"], 1,
+     "params.yaml"),
+    ("missing ID set", ["fit", DETECTOR, "--id", "absent.zarr", "--out", "x.pkl"], 1,
+     "absent.zarr"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("case", "args", "code", "needle"), STAGE_CASES, ids=[c[0] for c in STAGE_CASES]
+)
+def test_a_stage_verb_refuses_bad_arguments_in_one_line(case, args, code, needle, workdir):
+    _refused(workdir, code, args, needle)
+
+
+SHOW_CASES = [
+    ("missing", None, "No report file"),
+    ("not YAML", "a: [unclosed\n", "not a YAML report file"),
+    ("params, not a report", "seed: 0\n", "neither a results file"),
+    ("a broken record", "records: [{detector: a}]\n", "Record 0"),
+]
+
+
+@pytest.mark.parametrize(("case", "text", "needle"), SHOW_CASES, ids=[c[0] for c in SHOW_CASES])
+def test_show_refuses_what_is_not_a_report(case, text, needle, workdir):
+    if text is not None:
+        (workdir / "reports").mkdir()
+        (workdir / "reports/r.yaml").write_text(text)
+    line = _refused(workdir, 1, ["show", "reports/r.yaml"], needle)
+    assert "run `dvc repro` first" not in line
+
+
+KILLS = [(sig, delay) for sig in (signal.SIGTERM, signal.SIGHUP) for delay in (0.8, 1.6, 2.4, 3.2)]
+
+
+@pytest.mark.parametrize(("sig", "delay"), KILLS, ids=[f"{s.name}-{d}s" for s, d in KILLS])
+def test_an_interrupted_stage_leaves_its_output_absent_or_complete(sig, delay, workdir):
+    """collect-eval killed at a point of its run (imports, rollouts, writing): one line, exit
+    128 + the signal, and the store is either absent or whole; no temporary file stays."""
+    delay += random.Random(f"{sig}{delay}").uniform(0, 0.4)  # a seeded jitter around the point
+    before = snapshot(workdir)
+    process = subprocess.Popen(
+        [OODRL, "collect-eval", "--policy", "models/policy.pt", "--out", "new.zarr"],
+        cwd=workdir, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    time.sleep(delay)
+    process.send_signal(sig)
+    stdout, stderr = process.communicate(timeout=120)
+    if process.returncode == 0:
+        read_trajectories(workdir / "new.zarr", stage=None)  # finished first: complete
+    else:
+        done = subprocess.CompletedProcess([], process.returncode, stdout, stderr)
+        assert_one_line_error(done, 128 + sig.value, f"interrupted ({sig.name})")
+        assert not (workdir / "new.zarr").exists()
+    left = {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} - set(before)
+    assert left <= {"new.zarr"}, left
