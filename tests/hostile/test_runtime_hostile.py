@@ -205,3 +205,27 @@ def test_an_interrupted_stage_leaves_its_output_absent_or_complete(sig, delay, w
         assert not (workdir / "new.zarr").exists()
     left = {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} - set(before)
     assert left <= {"new.zarr"}, left
+
+
+def test_show_warns_when_the_results_inputs_changed(tmp_path):
+    """`oodrl show` on a DVC output whose input changed since it was computed says so (a real
+    git + DVC repository); on a current output, and on a file DVC does not output, it is silent."""
+
+    def git_dvc(*args: str) -> None:
+        subprocess.run(args, cwd=tmp_path, check=True, capture_output=True)
+
+    git_dvc("git", "init", "-q")
+    git_dvc(str(Path(OODRL).with_name("dvc")), "init", "-q")
+    (tmp_path / "in.yaml").write_text("sweep: {}\n")
+    (tmp_path / "dvc.yaml").write_text(
+        "stages:\n  copy:\n    cmd: mkdir -p reports && cp in.yaml reports/results.yaml\n"
+        "    deps: [in.yaml]\n    outs: [reports/results.yaml]\n"
+    )
+    git_dvc(str(Path(OODRL).with_name("dvc")), "repro", "-q")
+    current = oodrl("show", "reports/results.yaml", cwd=tmp_path)
+    assert current.returncode == 0 and current.stderr == ""
+    assert oodrl("show", "in.yaml", cwd=tmp_path).stderr == ""
+    (tmp_path / "in.yaml").write_text("sweep: {changed: {}}\n")
+    stale = oodrl("show", "reports/results.yaml", cwd=tmp_path)
+    assert stale.returncode == 0 and stale.stderr.count("\n") == 1
+    assert stale.stderr.startswith("warning: reports/results.yaml is stale")

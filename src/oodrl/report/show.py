@@ -83,19 +83,23 @@ def stale_warning(path: str | Path) -> str | None:
     import os
     import shutil
     import subprocess
+    import sys
 
     path = Path(path).resolve()
     project = next((d for d in path.parents if (d / "dvc.yaml").is_file()), None)
-    dvc = shutil.which("dvc")
+    # The dvc installed beside this Python first: the one of oodrl's own environment.
+    dvc = shutil.which("dvc", path=os.pathsep.join([str(Path(sys.executable).parent),
+                                                    os.environ.get("PATH", "")]))  # fmt: skip
     if project is None or dvc is None:
         return None
     target = path.relative_to(project).as_posix()
     done = subprocess.run(
-        [dvc, "status", "--quiet", "--with-deps", target],
+        [dvc, "status", "--with-deps", target],
         cwd=project, capture_output=True, text=True, check=False,
     )  # fmt: skip
-    if done.returncode == 0 or "Traceback" in done.stderr or "ERROR" in done.stderr:
-        return None  # current, or not an output DVC tracks
+    # A failure means the file is no output DVC knows (its inputs are then unknown).
+    if done.returncode != 0 or "up to date" in done.stdout:
+        return None
     where = os.path.relpath(project)
     return (
         f"warning: {target} is stale: its stage or an input changed since it was computed "
