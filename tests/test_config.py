@@ -109,14 +109,59 @@ BAD = [
     ("negative workers", _set("executor.workers", -1), "executor.workers"),
     ("offset before onset", _set("anomaly.offset", 100), "anomaly.offset"),
     ("unknown policy.train key", _set("policy.train.learning_rate", 0.1), "policy.train"),
+    ("closest top-level key", _set("sedd", 1), "sedd: unknown key. Did you mean 'seed'? Allowed:"),
+    ("closest section key", _set("tiers.alhpa", 0.1), "tiers.alhpa: unknown key. Did you mean"),
+    ("empty tiers grid", _set("tiers.grid", []), "tiers.grid: must be at least one severity"),
+    ("negative lr", _set("policy.train.lr", -0.1), "policy.train.lr: must be a float > 0"),
+    ("hidden size zero", _set("policy.train.hidden_sizes", [64, 0]), "policy.train.hidden_sizes"),
+    ("policy of another env", _set("policy.train.env_id", "CartPole-v1"), "policy.train.env_id"),
+    ("eval seeds on ID seeds", _set("data.eval_seed_offset", 29), "data.eval_seed_offset: the"),
+    (
+        "calibration seeds on eval seeds",
+        _set("tiers.calibration_seed_offset", 10_019),
+        "tiers.calibration_seed_offset: the tier calibration streams (seeds seed + 10019..10057) "
+        "overlap the evaluation streams (seed + 10000..10019)",
+    ),
+    (
+        "impact episodes overlap",
+        _set("tiers.episodes", 100_001),
+        "tiers.episodes: the random policy's impact episodes",
+    ),
+    (
+        "episode_max without the held-out streams",
+        _set("detectors.cusum.threshold_rule", "episode_max"),
+        "detectors.cusum.alpha: threshold_rule episode_max at alpha=0.05 needs at least 19",
+    ),
+    (
+        "detector class without the outlier API",
+        _set("detectors.mine", {"class": "sklearn.linear_model:LinearRegression"}),
+        "detectors.mine: sklearn.linear_model:LinearRegression has no outlier API",
+    ),
+    (
+        "hbos alpha under the percentile rule",
+        _set("detectors.mine", {"class": "pyod.models.hbos:HBOS", "alpha": 0.2}),
+        "detectors.mine.alpha: 'alpha' is oodrl's key",
+    ),
 ]
+
+
+def _checked(data: dict):
+    """What `oodrl check-params` runs: loading, then the checks beyond it, file-prefixed."""
+    from oodrl.params_check import check_completely
+
+    params = parse_params(data, "params.yaml")
+    try:
+        check_completely(params)
+    except ConfigError as error:
+        raise ConfigError(f"params.yaml: {error}") from None
+    return params
 
 
 @pytest.mark.parametrize(("case", "edit", "message"), BAD, ids=[b[0] for b in BAD])
 def test_bad_params_are_one_line_errors(default_params, case, edit, message):
     edit(default_params)
     with pytest.raises(ConfigError) as info:
-        parse_params(default_params, "params.yaml")
+        _checked(default_params)
     text = str(info.value)
     assert "\n" not in text
     assert text.startswith("params.yaml: ")
@@ -124,11 +169,13 @@ def test_bad_params_are_one_line_errors(default_params, case, edit, message):
     assert len(text) < 400, "a one-line error never quotes a whole section"
 
 
-def test_a_target_action_the_environment_lacks_is_refused_by_check_environment(default_params):
+def test_a_target_action_the_environment_lacks_is_refused_by_check_completely(default_params):
+    from oodrl.params_check import check_completely
+
     default_params["anomaly"]["injectors"]["action_conditioned_dynamics"]["target_action"] = 4
     params = parse_params(default_params, "params.yaml")  # stages validate without gymnasium
     with pytest.raises(ConfigError) as info:
-        params.check_environment()
+        check_completely(params)
     text = str(info.value)
     assert "\n" not in text
     assert "anomaly.injectors.action_conditioned_dynamics: The 'target_action' parameter" in text
@@ -207,6 +254,17 @@ def test_check_params_cli_exit_codes(tmp_path, default_params):
     result = runner.invoke(app, ["check-params", str(bad)])
     assert result.exit_code == 2
     assert result.output.count("\n") == 1 and "anomaly.severity" in result.output
+
+
+def test_episode_max_alpha_the_message_allows_passes(default_params):
+    """Six held-out streams allow alpha >= 1/7: the message offers 0.1429 (1/7 as a float is
+    a hair below 1/7, and needs seven)."""
+    cusum = default_params["detectors"]["cusum"]
+    cusum.update(threshold_rule="episode_max", alpha=0.1428)
+    with pytest.raises(ConfigError, match=r"Allowed: alpha >= 1/7 \(0.1429 or more\)"):
+        _checked(default_params)
+    cusum["alpha"] = 0.1429
+    assert _checked(default_params).detector("cusum").alpha == 0.1429
 
 
 def test_missing_and_malformed_files(tmp_path):

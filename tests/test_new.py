@@ -144,7 +144,7 @@ def root(tmp_path: Path, repo_root: Path) -> Path:
     ("arguments", "message"),
     [
         (["x", "--env", "MountainCarContinuos-v0", "--train", "ppo"], "--env: Unknown environment"),
-        (["x", "--env", "CarRacing-v3", "--train", "ppo"], "flat Box observation"),
+        (["x", "--env", "CarRacing-v3", "--train", "ppo"], "need a feature extractor"),
         (["x", "--env", "MountainCar-v0"], "exactly one of --policy PATH, --train"),
         (["X-1", "--env", "MountainCar-v0", "--train", "ppo"], "not a pipeline name"),
         (["x", "--env", "MountainCar-v0", "--train", "sac"], "SAC needs continuous actions"),

@@ -88,7 +88,9 @@ def test_an_uncommitted_input_is_refused_before_anything_runs(fresh_suite):
     before = locks(fresh_suite)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(fresh_suite)])
     assert result.exit_code == 2
-    assert result.output.count("\n") == 1 and "params.yaml: uncommitted" in result.output
+    progress, error = result.output.splitlines()  # the status checks found what is stale
+    assert progress == "suite: checking 3 projects with dvc status (2 at a time)"
+    assert "params.yaml: uncommitted" in error
     assert locks(fresh_suite) == before
 
 
@@ -138,6 +140,7 @@ def test_ray_tasks_survive_a_node_killed_mid_task(fresh_suite, serial_locks, ray
     from oodrl.testing.pipeline import run
 
     cluster, (doomed, survivor) = ray_cluster
+    (tmp_path / "remote").mkdir()  # oodrl creates no remote (SPEC §22)
     run(fresh_suite, "dvc", "remote", "add", "--local", "-d", "lab", str(tmp_path / "remote"))
     start = time.time()
     lines: list[str] = []

@@ -166,9 +166,13 @@ def check_params(
     stage deletes its outputs; its stamp never changes, so passing re-runs nothing, and each
     code stamp changes only with the code its stages execute."""
     from oodrl.config import load_params
+    from oodrl.params_check import check_completely
 
     params = load_params(path)
-    params.check_environment()
+    try:
+        check_completely(params)
+    except ConfigError as error:  # these checks name keys, not the file
+        raise ConfigError(f"{path}: {error}") from None
     if pipeline is not None:
         from oodrl import pipeline as pipelines
 
@@ -330,7 +334,8 @@ def new(
     env: Annotated[
         str | None,
         typer.Option(
-            help="any Gymnasium id with a flat Box observation (--dataset: the one it names)"
+            help="any Gymnasium id (not Gymnasium's module:EnvId) with a flat Box observation; "
+            "image observations are not supported (--dataset: the one it names)"
         ),
     ] = None,
     flatten: Annotated[
@@ -358,7 +363,12 @@ def new(
         ),
     ] = None,
     steps: Annotated[
-        int, typer.Option(min=1, help="--train's budget in environment steps")
+        int,
+        typer.Option(
+            min=1,
+            help="--train's budget in environment steps (a policy no better than random is "
+            "refused)",
+        ),
     ] = 50_000,
     T: Annotated[  # noqa: N803 - the protocol's name
         int | None, typer.Option("--T", min=3, help="steps per stream (default: episode length)")
@@ -716,7 +726,8 @@ def main() -> None:
         sys.exit(128 + name.value)
 
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, interrupt)
+        if signal.getsignal(signum) in (signal.SIG_DFL, signal.default_int_handler):
+            signal.signal(signum, interrupt)  # an ignored one stays ignored: `nohup oodrl …`
     debug = os.environ.get(DEBUG_VARIABLE) == "1"
     try:
         code = app(standalone_mode=False)

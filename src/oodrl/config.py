@@ -2,7 +2,9 @@
 
 Loading validates everything a stage could read: structure and types (pydantic, unknown keys
 refused), the protocol's ranges, and every detector's and injector's own parameters (their
-declared constraints). Any problem is one `ConfigError` line naming the key path and what is
+declared constraints). `oodrl check-params` checks more (`oodrl.params_check.check_completely`):
+the seed ranges, the calibration counts, and every library detector fitted
+on dummy data. Any problem is one `ConfigError` line naming the key path and what is
 allowed; the CLI turns it into exit code 2 before anything is written. Stage commands load
 with `components=False` and validate the one component they build (check_params, the first
 stage, validated them all), so each imports only its own component's code.
@@ -17,11 +19,22 @@ from fractions import Fraction
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from oodrl.errors import ConfigError, OodrlError
+from oodrl.validation import Interval, IsType, Options, ParameterError, SequenceOf
 
 DEFAULT_PARAMS = Path("params.yaml")
+#: The impact curves' whole episodes (SPEC §15) start at these offsets from `seed`: the policy's
+#: at seed + POLICY_SEED_OFFSET + j, the random policy's at seed + RANDOM_SEED_OFFSET + j. Fixed,
+#: not params; `oodrl check-params` keeps every params-set range of streams clear of them.
+POLICY_SEED_OFFSET = 500_000
+RANDOM_SEED_OFFSET = 600_000
+#: Registered metrics computed only where `metrics.extra` names them (`oodrl.metrics`): added
+#: after the paper's results were written, so the root's results.yaml keeps its records. Here,
+#: not in `oodrl.metrics`, so that loading params never imports the metrics' code (which would
+#: put it in every stage's code stamp).
+OPT_IN_METRICS = ("vus_pr",)
 
 
 class _Section(BaseModel):
@@ -73,6 +86,20 @@ class MetricsConfig(_Section):
     tpr_target: float = Field(0.95, gt=0, le=1)
     temporal_buffer: int = Field(10, ge=0)
     traces_per_anomaly: int = Field(1, ge=0)
+    #: Opt-in metrics to compute besides the default ones (`OPT_IN_METRICS`, e.g.
+    #: `vus_pr`). Left out of the resolved params when empty, so the params hash of results
+    #: written before the key existed stays the same.
+    extra: list[str] = Field(default_factory=list, exclude_if=lambda extra: not extra)
+
+    @field_validator("extra")
+    @classmethod
+    def _known_opt_in(cls, extra: list[str]) -> list[str]:
+        unknown = [name for name in extra if name not in OPT_IN_METRICS]
+        if unknown:
+            raise ValueError(
+                f"unknown opt-in metric {unknown[0]!r}; allowed: {', '.join(OPT_IN_METRICS)}"
+            )
+        return extra
 
 
 class TiersConfig(_Section):
@@ -80,8 +107,13 @@ class TiersConfig(_Section):
     per-stream operating point. Each fault's impact curve is measured on `grid` over `episodes`
     whole episodes (π and the random policy each); the per-stream alarm rule is calibrated on
     `n_calibration` held-out clean streams (seeds `seed + calibration_seed_offset + j`) at
-    false-alarm budget `alpha`; `detection_rate@K` counts first alarms within `k` steps of the
-    onset."""
+    false-alarm budget `alpha` by `threshold_rule` (`episode_max`: marginal, E[FAR] ≤ α;
+    `episode_max_conditional`: P(FAR > α) ≤ `delta` over calibration draws, SPEC §19);
+    `detection_rate@K` counts first alarms within `k` steps of the onset.
+
+    `threshold_rule` and `delta` came after results were stamped: at their defaults they are
+    left out of the resolved params (`exclude_if`), so the params hash of every results file
+    written before them stays the same."""
 
     grid: list[float] = Field(default_factory=lambda: [round(0.1 * i, 1) for i in range(1, 11)])
     episodes: int = Field(30, ge=2)
@@ -89,6 +121,10 @@ class TiersConfig(_Section):
     calibration_seed_offset: int = Field(20_000, ge=1)
     alpha: float = Field(0.05, gt=0, lt=1)
     k: int = Field(100, ge=0)
+    threshold_rule: Literal["episode_max", "episode_max_conditional"] = Field(
+        "episode_max", exclude_if=lambda rule: rule == "episode_max"
+    )
+    delta: float = Field(0.1, gt=0, lt=1, exclude_if=lambda delta: delta == 0.1)
 
 
 class ExecutorConfig(_Section):
@@ -150,11 +186,14 @@ class Params(_Section):
         if any(b <= a for a, b in zip(grid, grid[1:], strict=False)):
             raise ValueError(f"anomaly.sweep: must be strictly increasing; got {grid}")
         tiers = self.tiers
-        if any(b <= a for a, b in zip(tiers.grid, tiers.grid[1:], strict=False)) or not all(
-            0 < s <= 1 for s in tiers.grid
+        if (
+            not tiers.grid
+            or any(b <= a for a, b in zip(tiers.grid, tiers.grid[1:], strict=False))
+            or not all(0 < s <= 1 for s in tiers.grid)
         ):
             raise ValueError(
-                f"tiers.grid: must be strictly increasing severities in (0, 1]; got {tiers.grid}"
+                "tiers.grid: must be at least one severity, strictly increasing, each in (0, 1]; "
+                f"got {tiers.grid}"
             )
         needed = math.ceil(1 / Fraction(str(tiers.alpha))) - 1
         if tiers.n_calibration < needed:
@@ -162,11 +201,6 @@ class Params(_Section):
                 f"tiers.n_calibration: the per-stream rule at alpha={tiers.alpha} needs at least "
                 f"{needed} clean calibration streams (ceil(1/alpha) - 1); got "
                 f"{tiers.n_calibration}"
-            )
-        if tiers.calibration_seed_offset == self.data.eval_seed_offset:
-            raise ValueError(
-                "tiers.calibration_seed_offset: must differ from data.eval_seed_offset (the "
-                "calibration streams would replay the evaluation streams)"
             )
         for key, names, blocks in (
             ("detectors", self.benchmark.detectors, self.detectors),
@@ -187,13 +221,16 @@ class Params(_Section):
     # -- components, validated on load (all) or when a stage builds one ---------------------
     def detector_class(self, name: str) -> type:
         from oodrl.detectors import DETECTORS
+        from oodrl.detectors.library import check_detector_class
 
-        return _component_class(DETECTORS, "detectors", name, self.detectors[name])
+        block = self.detectors[name]
+        return _component_class(DETECTORS, "detectors", name, block, check_detector_class)
 
     def injector_class(self, name: str) -> type:
         from oodrl.injectors import INJECTORS
 
-        return _component_class(INJECTORS, "anomaly.injectors", name, self.anomaly.injectors[name])
+        block = self.anomaly.injectors[name]
+        return _component_class(INJECTORS, "anomaly.injectors", name, block, _check_injector_class)
 
     @property
     def detector_classes(self) -> dict[str, type]:
@@ -228,18 +265,6 @@ class Params(_Section):
             self.injector(name)
         self.policy_train_config()
 
-    def check_environment(self) -> None:
-        """Injector parameters against the environment's spaces (`oodrl check-params` and the
-        collection stages; it makes an environment, so not every stage pays for it)."""
-        from oodrl.envs import ENVIRONMENTS
-
-        adapter = ENVIRONMENTS.get(self.env.id)()
-        for name in self.anomaly.injectors:
-            try:
-                self.injector(name).check_adapter(adapter)
-            except ConfigError as error:
-                raise ConfigError(f"anomaly.injectors.{name}: {error}") from None
-
     def policy_train_config(self):
         """policy.train as its trainer's typed settings (unknown keys refused).
 
@@ -257,16 +282,49 @@ class Params(_Section):
             )
         config_class = TRAINER_CONFIGS[algorithm]
         allowed = {f.name for f in dataclasses.fields(config_class)}
-        for key in settings:
+        for key, value in settings.items():
             if key not in allowed:
+                hint = did_you_mean(key, allowed)
                 raise ConfigError(
-                    f"policy.train.{key}: unknown key for algorithm {algorithm}. "
+                    f"policy.train.{key}: unknown key for algorithm {algorithm}.{hint} "
                     f"Allowed: algorithm, {', '.join(sorted(allowed))}."
                 )
+            allowed_values = _TRAIN_RANGES.get(key, [])
+            if allowed_values and not any(check(value) for check in allowed_values):
+                allowed_text = " or ".join(str(check) for check in allowed_values)
+                raise ConfigError(f"policy.train.{key}: must be {allowed_text}; got {value!r}")
+        env_id = settings.get("env_id", self.env.id)
+        if env_id != self.env.id:
+            raise ConfigError(
+                f"policy.train.env_id: must be env.id ({self.env.id}), the environment the "
+                f"policy acts in; got {env_id!r}"
+            )
         try:
             return config_class(**settings)
         except (TypeError, ValueError) as error:
             raise ConfigError(f"policy.train: {error}") from None
+
+
+_COUNT = Interval(int, 1, None)
+#: The range of every numeric policy.train setting (and the type of every other), whichever
+#: trainer has it: the trainers' dataclasses check nothing, and training comes last to read them.
+_TRAIN_RANGES: dict[str, list] = {
+    key: allowed
+    for keys, allowed in (
+        (("env_id", "source", "file", "sha256"), [IsType(str)]),
+        (("hidden_sizes",), [SequenceOf(_COUNT)]),
+        (("total_steps", "batch_size", "buffer_size", "train_freq", "target_sync"), [_COUNT]),
+        (("eval_every", "eval_episodes", "final_eval_episodes"), [_COUNT]),
+        (("gradient_steps",), [_COUNT, Options((-1,))]),  # Stable-Baselines3: -1 = per env step
+        (("learning_starts", "final_eval_seed", "seed"), [Interval(int, 0, None)]),
+        (("lr", "adam_eps", "max_grad_norm"), [Interval(float, 0, None, closed="neither")]),
+        (("lr_final", "sigma0"), [Interval(float, 0, None)]),
+        (("gamma",), [Interval(float, 0, 1)]),
+        (("tau",), [Interval(float, 0, 1, closed="right")]),
+        (("early_stop_return",), [Interval(float, None, None)]),
+    )
+    for key in keys
+}
 
 
 def did_you_mean(name: str, candidates: list[str]) -> str:
@@ -286,18 +344,33 @@ def _registered(key: str) -> list[str]:
     return INJECTORS.names()
 
 
-def _component_class(registry, section: str, name: str, block: dict[str, Any]) -> type:
+def _component_class(registry, section: str, name: str, block: dict[str, Any], check) -> type:
+    """The class a block names (its `class:` path or its name), checked to be of its kind."""
     path = block.get("class")
     try:
-        return registry.get(path if path else name)
+        cls = registry.get(path if path else name)
+        check(cls, path or name)
     except OodrlError as error:
         raise ConfigError(f"{section}.{name}: {error}") from None
+    return cls
+
+
+def _check_injector_class(obj: Any, path: str) -> None:
+    from oodrl.core.injector import BaseAnomalyInjector
+
+    if not (isinstance(obj, type) and issubclass(obj, BaseAnomalyInjector)):
+        raise ConfigError(
+            f"{path} is not an injector class. Allowed: a subclass of "
+            "oodrl.core.injector:BaseAnomalyInjector."
+        )
 
 
 def _build(cls: type, key: str, block: dict[str, Any]):
     params = {k: v for k, v in block.items() if k != "class"}
     try:
         return cls.from_params(params)
+    except ParameterError as error:
+        raise ConfigError(f"{key}.{error.param}: {error}") from None
     except OodrlError as error:
         raise ConfigError(f"{key}: {error}") from None
 
@@ -314,7 +387,13 @@ def _format_pydantic(error: ValidationError) -> str:
         return message
     loc = ".".join(str(p) for p in first["loc"])
     if first["type"] == "extra_forbidden":
-        return f"{loc}: unknown key (not a parameter of this section)"
+        known = _section_keys(first["loc"][:-1])
+        if len(first["loc"]) == 1:
+            known.append(EXTENDS_KEY)  # read before validation, but a top-level key all the same
+        return (
+            f"{loc}: unknown key.{did_you_mean(str(first['loc'][-1]), known)} "
+            f"Allowed: {', '.join(known)}."
+        )
     if message.startswith(loc):
         return message
     quoted = repr(first.get("input"))
@@ -323,12 +402,28 @@ def _format_pydantic(error: ValidationError) -> str:
     return f"{loc}: {message} (got {quoted})"
 
 
+def _what(data: Any) -> str:
+    """What a params file holds that is not a mapping, in words."""
+    return "an empty file" if data is None else f"a YAML {type(data).__name__}"
+
+
+def _section_keys(loc: tuple) -> list[str]:
+    """The keys of the params section at `loc` (() = the top level)."""
+    model: Any = Params
+    for part in loc:
+        model = model.model_fields[part].annotation
+    return list(model.model_fields)
+
+
 def parse_params(data: Any, source: str = "params", *, components: bool = True) -> Params:
     """Validate params; `components=False` checks structure and ranges only, leaving each
     detector, injector and trainer to be validated when a stage builds it (so a stage imports,
     and its code stamp lists, only the components it builds; check_params validates all)."""
     if not isinstance(data, dict):
-        raise ConfigError(f"{source}: must be a mapping of sections; got {type(data).__name__}.")
+        raise ConfigError(
+            f"{source}: must be a mapping of sections ({', '.join(_section_keys(()))}); "
+            f"got {_what(data)}."
+        )
     try:
         params = Params.model_validate(data)
     except ValidationError as error:
@@ -365,6 +460,12 @@ def read_params_data(path: Path) -> dict[str, Any]:
         if base_path in chain:
             raise ConfigError(f"{path}: '{EXTENDS_KEY}' chain loops back to {base_path.name}.")
         base = _read_yaml(base_path, named_by=f"{path}: {EXTENDS_KEY}")
+        if not isinstance(base, dict):
+            # A base that is no mapping would be dropped by the merge, silently.
+            raise ConfigError(
+                f"{path}: {EXTENDS_KEY} {base_path}: must be a mapping of sections; got "
+                f"{_what(base)}."
+            )
         data = merge_params(base, {k: v for k, v in data.items() if k != EXTENDS_KEY})
         chain.append(base_path)
     return data
@@ -395,6 +496,8 @@ def _read_yaml(path: Path, named_by: str = "") -> Any:
         raise ConfigError(f"{prefix}{path}: params file not found.")
     try:
         return yamlio.load(path.read_text())  # libyaml: every stage reads its params first
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a text file (not UTF-8); expected YAML.") from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark else ""

@@ -15,8 +15,11 @@ makes the wrapped environment (`oodrl.envs`).
 `--dataset PATH_OR_ID` makes a pipeline of recorded data instead (`oodrl.recorded`): a Minari
 dataset's episodes are its clean streams, so it has no policy and runs the post-hoc faults only.
 
-Everything is made in a staging folder beside it and moved into place once it validates, so a
-refused command leaves nothing behind.
+Everything (params, faults, models, DVC files) is made in a staging folder beside it,
+`pipeline/.NAME.new-<pid>`, and moved into place by one rename at the very end, so a refused or
+interrupted command (SIGINT, SIGTERM, SIGHUP: SPEC §22) leaves nothing behind: `pipeline/NAME`
+is complete or absent. A staging folder whose process died without cleaning up (SIGKILL) is
+removed by the next `oodrl new`.
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ import json
 import os
 import re
 import shutil
+import signal
+import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -33,13 +38,18 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from oodrl.errors import ConfigError, ContractError, OodrlError
+from oodrl.errors import ConfigError, ContractError, OodrlError, PolicyError
 
 if TYPE_CHECKING:
     from oodrl.config import Params
     from oodrl.core.adapter import EnvironmentAdapter
 
 NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]*")
+#: The staging folder of `pipeline/NAME` while `oodrl new` (process `pid`) makes it.
+STAGING_PATTERN = re.compile(r"\.(?P<name>[a-z][a-z0-9_]*)\.new-(?P<pid>[0-9]+)")
+#: The signals that end `oodrl new` with its staging folder removed. SIGINT raises
+#: KeyboardInterrupt already; these two raise SystemExit meanwhile (`_signals_end_staging`).
+ENDING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
 #: The first seed of the held-out episodes of the policy's report, and the seed of the clean
 #: stream its action predicate is read from (the ID and evaluation sets use seeds from 0).
 EVALUATION_SEED = 1_000_000
@@ -87,12 +97,15 @@ def new_pipeline(
             "oodrl new: give exactly one of --policy PATH, --train sac|ppo|dqn and "
             "--dataset PATH_OR_ID."
         )
+    if env_id is not None:
+        _check_env_id(env_id)
     if dataset is not None:
         if flatten:
             raise ConfigError("--flatten: it wraps an agent's environment, not a dataset.")
         return _recorded_pipeline(root, directory, dataset, env_id, T)
     if env_id is None:
         raise ConfigError("--env: name the agent's environment (a Gymnasium id).")
+    _refuse_images(env_id)
     if flatten:
         env_id = _flattened(env_id)
     adapter = _adapter(env_id)
@@ -104,6 +117,7 @@ def new_pipeline(
         report = _make_policy(
             policy, train, env_id, models, steps=steps, episodes=episodes, seed=seed
         )
+        _check_beats_random(report, adapter, None if train is None else steps)
         from oodrl.envs.collect import collect
         from oodrl.policies.load import load_policy
 
@@ -196,21 +210,86 @@ def _shared_params(root: Path) -> Params:
 
 @contextmanager
 def _staged(directory: Path, root: Path) -> Iterator[Path]:
-    """A staging folder beside `directory` to fill; then its params are checked, it is moved
-    into place and given its DVC files. Any failure removes what was made."""
+    """A staging folder beside `directory` to fill; then its params are checked, it is given
+    its DVC files and moved into place by one rename. A failure or an interruption (SIGINT,
+    SIGTERM, SIGHUP) before that rename removes the staging folder, so `directory` is complete
+    or absent; other processes never see a half-made pipeline under its name."""
     directory.parent.mkdir(parents=True, exist_ok=True)
+    _remove_dead_staging(directory.parent)
     staging = directory.with_name(f".{directory.name}.new-{os.getpid()}")
-    staging.mkdir()
-    made = staging
+    with _signals_end_staging():
+        staging.mkdir()
+        try:
+            yield staging
+            _check(staging)
+            # Rendered in the staging folder: a sibling of `directory`, so every path the
+            # DVC files hold (relative to the pipeline's folder) is the same there.
+            _write_dvc_files(staging, root)
+            if directory.exists():  # made meanwhile by another `oodrl new`: never replaced
+                _check_name(directory.name, directory)
+            staging.rename(directory)
+        except BaseException:
+            # A second signal must not cut the cleanup short (the handlers return after).
+            _ignore_signals()
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+
+
+@contextmanager
+def _signals_end_staging() -> Iterator[None]:
+    """SIGTERM and SIGHUP raise SystemExit(128 + signal) in the block, as SIGINT raises
+    KeyboardInterrupt, so the staging folder's cleanup runs, where they would end the process
+    at once (their default action). A caller's own handler is kept (oodrl's CLI raises
+    KeyboardInterrupt for them), and so is an ignored signal (`nohup`). Every previous handler,
+    SIGINT's too (the cleanup ignores it), is restored after; only the main thread has them."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def end(signum: int, frame: Any) -> None:
+        raise SystemExit(128 + signum)
+
+    # None: a handler set outside Python, which cannot be set back; such a signal is left be.
+    kept = {number: signal.getsignal(number) for number in (signal.SIGINT, *ENDING_SIGNALS)}
+    kept = {number: handler for number, handler in kept.items() if handler is not None}
+    for number in ENDING_SIGNALS:
+        if kept.get(number) == signal.SIG_DFL:
+            signal.signal(number, end)
     try:
-        yield staging
-        _check(staging)
-        staging.rename(directory)
-        made = directory  # from here on, a failure removes the pipeline itself
-        _write_dvc_files(directory, root)
-    except BaseException:
-        shutil.rmtree(made, ignore_errors=True)
-        raise
+        yield
+    finally:
+        for number, handler in kept.items():
+            signal.signal(number, handler)
+
+
+def _ignore_signals() -> None:
+    """While the staging folder is removed (`_signals_end_staging` restores the handlers)."""
+    if threading.current_thread() is threading.main_thread():
+        for number in (signal.SIGINT, *ENDING_SIGNALS):
+            if signal.getsignal(number) is not None:
+                signal.signal(number, signal.SIG_IGN)
+
+
+def _remove_dead_staging(parent: Path) -> None:
+    """Remove the staging folders of `oodrl new` runs that died without cleaning up (SIGKILL,
+    a crash): their process is gone, or its pid is this process's own (reused). A live run's
+    folder is left to it."""
+    for path in parent.iterdir():
+        match = STAGING_PATTERN.fullmatch(path.name)
+        if match and path.is_dir():
+            pid = int(match["pid"])
+            if pid == os.getpid() or not _alive(pid):
+                shutil.rmtree(path, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)  # signal 0: only whether the process exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
 
 
 def _write_params(staging: Path, params: str, faults: str) -> None:
@@ -270,9 +349,64 @@ def _adapter(env_id: str):
     return adapter
 
 
+def _check_env_id(env_id: str) -> None:
+    """Refuse Gymnasium's `module:EnvId` (make EnvId after importing `module`, which registers
+    it): oodrl reads `module:Class` as an adapter's import path, and its stages make env.id
+    without importing anything, so such an environment is not one they could make."""
+    from oodrl.envs import gymnasium_id
+
+    module, colon, _ = gymnasium_id(env_id).partition(":")
+    if colon:
+        raise ConfigError(
+            f"--env: {env_id!r} is Gymnasium's module:EnvId form, which oodrl does not support "
+            f"(its stages make env.id without importing {module}); give an id that `import "
+            "gymnasium` registers, e.g. CartPole-v1."
+        )
+
+
+def _observation_space(env_id: str):
+    """The observation space of a Gymnasium id, or None for an id not in its registry (the
+    adapter's lookup then names the closest one)."""
+    import gymnasium
+
+    if env_id not in gymnasium.registry:
+        return None
+    env = gymnasium.make(env_id)
+    try:
+        return env.observation_space
+    finally:
+        env.close()
+
+
+def _image_spaces(space) -> Iterator[Any]:
+    """The image observations in `space` (Dict and Tuple searched): a Box of 3 or more axes
+    (height, width, channels...), or of 2 axes of uint8 pixels (a grayscale frame). A float
+    Box of 2 axes is a table of features, which --flatten serves."""
+    from gymnasium import spaces
+
+    if isinstance(space, spaces.Box):
+        shape = space.shape
+        if len(shape) >= 3 or (len(shape) == 2 and space.dtype == np.uint8):
+            yield space
+    elif isinstance(space, spaces.Dict | spaces.Tuple):
+        for part in space.spaces.values() if isinstance(space, spaces.Dict) else space.spaces:
+            yield from _image_spaces(part)
+
+
+def _refuse_images(env_id: str) -> None:
+    """Refuse image observations, --flatten or not: a detector given every pixel as a feature
+    (CarRacing: 27,648) measures nothing useful, and oodrl extracts no features from images."""
+    image = next(_image_spaces(_observation_space(env_id)), None)
+    if image is not None:
+        raise ConfigError(
+            f"--env: {env_id} observes images ({image}); oodrl's detectors take flat feature "
+            "vectors, and image observations would need a feature extractor, which oodrl does "
+            "not support."
+        )
+
+
 def _flattened(env_id: str) -> str:
     """The name of `env_id` with flattened observations; refused where they are flat."""
-    import gymnasium
     from gymnasium import spaces
 
     from oodrl.envs import ENVIRONMENTS, flattened
@@ -281,9 +415,7 @@ def _flattened(env_id: str) -> str:
         ENVIRONMENTS.path(env_id)  # an unknown id: the usual line, naming the closest one
     except OodrlError as error:
         raise ConfigError(f"--env: {error}") from None
-    env = gymnasium.make(env_id)
-    space = env.observation_space
-    env.close()
+    space = _observation_space(env_id)
     if isinstance(space, spaces.Box) and len(space.shape) == 1:
         raise ConfigError(f"--flatten: {env_id} observes a flat Box already; leave it out.")
     return flattened(env_id)
@@ -337,6 +469,41 @@ def _make_policy(
             f"--policy: {path} is an RL Zoo run on {source.env_id}; --env says {env_id}."
         )
     return convert.convert_sb3(source, env_id, out, report, **kwargs)
+
+
+def _check_beats_random(
+    report: dict[str, Any], adapter: EnvironmentAdapter, steps: int | None
+) -> None:
+    """Refuse a policy no better than uniformly random actions: every impact stage would fail
+    after collection (R̃ = (R − R_rand) / (R_clean − R_rand) needs R_clean > R_rand,
+    `oodrl.impact`). Random actions are scored on the evaluation's own episodes: episode i
+    resets from seed EVALUATION_SEED + i and draws its actions from numpy's generator of it.
+
+    The rule: the policy's mean return must exceed random's mean by more than two standard
+    errors of random's mean (its std / √n; none from one episode), so a policy whose return
+    random actions reach by chance on these episodes is not taken for a trained one."""
+    from oodrl.impact import UniformRandomPolicy
+    from oodrl.policies.evaluate import evaluate_policy
+
+    evaluation = report["evaluation"]
+    episodes, mean = int(evaluation["episodes"]), float(evaluation["mean"])
+    rngs = [np.random.default_rng(EVALUATION_SEED + i) for i in range(episodes)]
+    chance = evaluate_policy(
+        UniformRandomPolicy(adapter), episodes, EVALUATION_SEED, env_id=adapter.env_id, rngs=rngs
+    )
+    margin = 2 * float(chance.std(ddof=1)) / np.sqrt(episodes) if episodes > 1 else 0.0
+    if not mean > chance.mean() + margin:
+        option, advice = (
+            ("--policy", "train it longer")
+            if steps is None
+            else ("--train", f"train longer (--steps, now {steps})")
+        )
+        raise PolicyError(
+            f"{option}: the policy's mean return {mean:.1f} over {episodes} held-out "
+            f"episodes is not above a uniformly random policy's ({chance.mean():.1f}, + "
+            f"{margin:.1f} for its noise) on the same episodes, so no fault's impact can be "
+            f"measured against it; {advice}."
+        )
 
 
 def zipfile_like(path: Path) -> bool:
@@ -467,9 +634,10 @@ def faults_text(env_id: str, support: dict[str, str | None]) -> str:
 def _check(directory: Path) -> None:
     """The new params validate, components and environment included (as check_params does)."""
     from oodrl.config import load_params
+    from oodrl.params_check import check_completely
 
     try:
-        load_params(directory / "params.yaml").check_environment()
+        check_completely(load_params(directory / "params.yaml"))
     except ContractError as error:
         raise ConfigError(str(error)) from None
 

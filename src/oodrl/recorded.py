@@ -23,6 +23,7 @@ dataset (the `minari` extra).
 from __future__ import annotations
 
 import hashlib
+import re
 import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -61,12 +62,36 @@ def _minari():
     return minari
 
 
+#: What a Minari dataset id is made of ([namespace/]name[-vN], minari's DATASET_ID_RE): a
+#: --dataset with anything else (., ~, a leading /, a backslash) names a directory.
+_ID_CHARACTERS = re.compile(r"[-\w][-\w/]*")
+
+
+def _names_a_directory(dataset: str) -> bool:
+    """Whether --dataset is a path rather than a Minari id. Ids have `/` too (mujoco/hopper/
+    expert-v0), so a path is one with a character no id has (./data, ~/d, /abs, d.h5), or one
+    whose first part is a directory here (data/my_dataset with a data/ beside it)."""
+    if not _ID_CHARACTERS.fullmatch(dataset):
+        return True
+    first, separator, _ = dataset.partition("/")
+    return bool(separator) and Path(first).is_dir()
+
+
 def locate(dataset: str) -> Path:
     """The data directory (holding metadata.json) of a dataset given as a path or a Minari id
     of the local datasets (MINARI_DATASETS_PATH, else ~/.minari/datasets)."""
-    path = Path(dataset)
-    if not path.exists():
-        path = _minari().storage.get_dataset_path(dataset)
+    path = Path(dataset).expanduser()
+    if path.exists() or _names_a_directory(dataset):
+        for candidate in (path, path / "data"):
+            if (candidate / METADATA).is_file():
+                return candidate
+        if not path.exists():
+            raise ConfigError(f"--dataset: no such dataset directory: {dataset}")
+        raise ConfigError(
+            f"--dataset: {dataset} is not a Minari dataset's directory (no {METADATA} in it "
+            "or in its data/)."
+        )
+    path = _minari().storage.get_dataset_path(dataset)
     for candidate in (path, path / "data"):
         if (candidate / METADATA).is_file():
             return candidate

@@ -10,14 +10,27 @@ task is done, while the other tasks run, and after the last one runs the leaderb
 checkout ends with the dvc.lock files a serial run writes. The tasks also push DVC's run-cache,
 so that any machine's `dvc repro` restores their stages instead of running them.
 
-Two ways to share, chosen by what is configured:
-- a DVC remote (the root project's default remote, at any config level): each task runs
-  `dvc repro --pull` and `dvc push --run-cache`; the head pulls. The remote reaches every project
-  and every node through a DVC *system*-level config file in a temporary directory
+Three ways to share, chosen by what is configured:
+- a DVC remote (the root project's default remote, at any config level): each task pulls,
+  runs `dvc repro --pull` and `dvc push --run-cache`; the head pulls. The remote reaches every
+  project and every node through a DVC *system*-level config file in a temporary directory
   (DVC_SYSTEM_CONFIG_DIR), so no file of the checkout or of its projects is edited. On Ray this
   is the only way (the nodes share nothing else).
 - none, with local workers: the clones use the head's cache directory itself (each clone's
   git-ignored .dvc/config.local), so one machine needs no remote and nothing is copied twice.
+- a read-only remote (an HTTP(S) URL, which DVC reads but a static server cannot write, or one
+  that refuses the probe write): the clones pull from it into the head's cache and push nothing;
+  what it lacks is built locally. On Ray it is refused (the nodes would share nothing).
+
+With a remote a task first pulls what the remote has (`dvc pull --allow-missing`), then runs
+`dvc repro --pull`. Not `dvc repro --pull --allow-missing`, DVC's own "fetch what is unchanged,
+run what changed": it skips, without pulling, a stage whose outputs are missing but otherwise
+current, and forgives a missing dep only when its path is absent. A dep on a directory that
+several stages fill (the root's `tier_metrics` reads `data/impact`, each `impact@<fault>` writes
+one file in it) is present on a fresh clone, holding only the .gitignore DVC committed there, so
+DVC finds it modified and runs that stage on inputs it never pulled. One `dvc pull` is also
+faster than DVC's pull per stage. `dvc pull --allow-missing` passes over a remote that does not
+answer, so a remote is checked before any task starts (`_check_remote`).
 """
 
 from __future__ import annotations
@@ -26,14 +39,16 @@ import json
 import math
 import os
 import re
+import signal
 import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor, as_completed
-from contextlib import contextmanager
+from contextlib import closing, contextmanager, suppress
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -41,6 +56,12 @@ from oodrl.errors import ConfigError, OodrlError
 
 #: A task whose node dies runs again on another node up to this many times.
 RAY_MAX_RETRIES = 3
+#: Seconds a Ray head has to answer the handshake of `_check_reachable`.
+RAY_HANDSHAKE_S = 10
+#: Seconds an HTTP remote has to answer (`_check_answers`).
+REMOTE_ANSWER_S = 10
+#: Seconds an interrupted git or DVC process has to stop on its own (Ctrl-C) before it is killed.
+STOP_GRACE_S = 10
 
 
 class SuiteRunError(OodrlError):
@@ -78,6 +99,7 @@ class Remote:
 
     name: str
     options: dict[str, str]
+    writable: bool = True
 
 
 def suite_pipelines(root: Path) -> list[str]:
@@ -100,8 +122,8 @@ def build_pipeline(
     bundle: bytes, commit: str, pipeline: str, remote: Remote | None, shared_cache: str | None
 ) -> tuple[float, tuple[str, ...], dict[str, bytes]]:
     """Clone `commit` from a git bundle, `dvc repro` the pipeline's project there (pulling what
-    the remote has), push its outputs and run-cache; the seconds taken, the stages that ran and
-    the `checkout_files` of the built project.
+    the remote has), push its outputs and run-cache to a writable remote; the seconds taken, the
+    stages that ran and the `checkout_files` of the built project.
 
     The clone is a temporary directory that goes with the task. A task killed with its node
     leaves nothing in the head's checkout; the remote and the cache receive whole objects only
@@ -115,24 +137,29 @@ def build_pipeline(
         project = clone / pipeline
         if shared_cache:
             _run(project, env, "dvc", "cache", "dir", "--local", shared_cache)
+        if remote:  # what the remote has, in one pull (why: the module's docstring)
+            _run(project, env, "dvc", "pull", "--allow-missing", "-q")
         done = _run(project, env, "dvc", "repro", *(["--pull"] if remote else []))
-        if remote:
-            _run(project, env, "dvc", "push", "-q")
-            _run(project, env, sys.executable, "-c", PUSH_RUN_CACHE)
+        if remote and remote.writable:
+            _push(project, env)
         files = checkout_files(project)
     return time.perf_counter() - start, ran_stages(done.stdout), files
 
 
 def checkout_files(project: Path) -> dict[str, bytes]:
     """What a built project holds beyond the cache, by path relative to it: the dvc.lock of each
-    of its DVC files and every output DVC does not cache (metrics.json, the policy). With these
-    written, `dvc checkout` makes another checkout of the commit the built project."""
+    of its DVC files, every output DVC does not cache (metrics.json, the policy) and the
+    .gitignore beside each output (`dvc repro` adds a cached output's entry, `dvc checkout` does
+    not: a new stage's output would show as untracked). With these written, `dvc checkout`
+    makes another checkout of the commit the built project."""
     from dvc.repo import Repo
 
     with Repo(str(project)) as repo:
         stages = repo.index.stages
+        outs = [(Path(out.fs_path), out.use_cache) for stage in stages for out in stage.outs]
         paths = {Path(stage.dvcfile.path).with_suffix(".lock") for stage in stages}
-        paths |= {Path(out.fs_path) for stage in stages for out in stage.outs if not out.use_cache}
+        paths |= {path for path, cached in outs if not cached}
+        paths |= {ignore for path, _ in outs if (ignore := path.parent / ".gitignore").is_file()}
     return {path.relative_to(project).as_posix(): path.read_bytes() for path in sorted(paths)}
 
 
@@ -148,6 +175,12 @@ with Repo(".") as repo:
     for objects in repo.stage_cache.get_used_objs(entries).values():
         repo.cloud.push(objects)
 """
+
+
+def _push(project: Path, env: dict[str, str]) -> None:
+    """Push a built project's outputs and run-cache (`PUSH_RUN_CACHE`)."""
+    _run(project, env, "dvc", "push", "-q")
+    _run(project, env, sys.executable, "-c", PUSH_RUN_CACHE)
 
 
 def ran_stages(dvc_output: str) -> tuple[str, ...]:
@@ -190,13 +223,107 @@ def _run(cwd: Path, env: dict[str, str], *args: str) -> subprocess.CompletedProc
     """One git or DVC command; a failure is a SuiteRunError carrying DVC's own error line."""
     command = [sys.executable, "-m", "dvc", *args[1:]] if args[0] == "dvc" else list(args)
     repo = Path(_git_root(cwd))
-    environment = {**task_environment(repo), **env}
-    done = subprocess.run(command, cwd=cwd, env=environment, capture_output=True, text=True)
+    done = _spawn(command, cwd, {**task_environment(repo), **env})
     if done.returncode != 0:
         lines = [line.strip() for line in (done.stderr + done.stdout).splitlines() if line.strip()]
         why = next((line for line in lines if line.startswith(("ERROR", "error"))), None)
         raise SuiteRunError(f"`{' '.join(args[:2])}` in {cwd.name}: {why or (lines or [''])[-1]}")
     return done
+
+
+#: The git and DVC processes running now (`_spawn`), each with whether it leads a process group
+#: of its own; whether this process passes signals on to them; whether the run was interrupted.
+_PROCESSES: dict[subprocess.Popen, bool] = {}
+_FORWARDING = threading.Event()
+_STOPPING = threading.Event()
+
+
+def _spawn(command: list[str], cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
+    """Run a command to its end. While signals are passed on (`_ending_processes_on_signals`),
+    in a process group of its own, so that an interruption reaches DVC's stage commands too;
+    once the run is interrupted, no command starts."""
+    if _STOPPING.is_set():
+        raise SuiteRunError("interrupted")
+    own_group = _FORWARDING.is_set()
+    pipe = subprocess.PIPE
+    with subprocess.Popen(command, cwd=cwd, env=env, stdout=pipe, stderr=pipe, text=True,
+                          start_new_session=own_group) as process:  # fmt: skip
+        _PROCESSES[process] = own_group
+        try:
+            if _STOPPING.is_set():  # interrupted since the check above: the stop may have missed it
+                _signal(process, signal.SIGTERM)
+            stdout, stderr = process.communicate()
+        except BaseException:  # interrupted in this thread: the command ends first
+            _end(process)
+            raise
+        finally:
+            _PROCESSES.pop(process, None)
+    return subprocess.CompletedProcess(command, process.returncode, stdout, stderr)
+
+
+def _signal(process: subprocess.Popen, signum: int) -> None:
+    """Signal a command, and every command it runs where it leads a group of its own."""
+    with suppress(ProcessLookupError):  # it ended meanwhile
+        if _PROCESSES.get(process):
+            os.killpg(process.pid, signum)
+        elif process.poll() is None:
+            process.send_signal(signum)
+
+
+def _end(process: subprocess.Popen) -> None:
+    """Stop a command as Ctrl-C would, and kill it if it has not stopped in the grace time: the
+    `with` blocks above it then delete its directory with nothing writing there."""
+    _signal(process, signal.SIGINT)
+    try:
+        process.wait(timeout=STOP_GRACE_S)
+    except subprocess.TimeoutExpired:
+        _signal(process, signal.SIGKILL)
+        process.wait()
+
+
+def _signal_all(signum: int) -> None:
+    for process in list(_PROCESSES):
+        _signal(process, signum)
+
+
+@contextmanager
+def _ending_processes_on_signals() -> Iterator[None]:
+    """SIGINT, SIGTERM and SIGHUP end every command the run started and unwind it as Ctrl-C does
+    (KeyboardInterrupt), so each scratch clone and DVC config directory goes with its `with`
+    block (SPEC §22). The commands have process groups of their own, out of the terminal's reach:
+    the signal is passed on to them, and SIGKILL after the grace time or at a second signal. A
+    signal the caller ignores (nohup's SIGHUP) stays ignored, and the caller's own handler
+    (`oodrl.cli.main`'s, which names the signal) still runs."""
+    _STOPPING.clear()
+    if threading.current_thread() is not threading.main_thread():  # only it can take signals
+        yield
+        return
+    previous: dict[int, object] = {}
+    deadline = threading.Timer(STOP_GRACE_S, _signal_all, [signal.SIGKILL])
+    deadline.daemon = True
+
+    def stop(signum: int, frame: object) -> None:
+        if _STOPPING.is_set():  # a second signal: already unwinding, let the cleanup finish
+            _signal_all(signal.SIGKILL)
+            return
+        _STOPPING.set()
+        _signal_all(signum)
+        deadline.start()
+        if callable(handler := previous[signum]):
+            handler(signum, frame)
+        raise KeyboardInterrupt
+
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            previous[signum] = signal.signal(signum, stop)
+    _FORWARDING.set()
+    try:
+        yield
+    finally:
+        deadline.cancel()
+        _FORWARDING.clear()
+        for signum, handler in previous.items():
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
 
 
 def _git_root(path: Path) -> str:
@@ -218,6 +345,13 @@ def run_suite(
     start = time.perf_counter()
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1. Got {workers} instead.")
+    with _ending_processes_on_signals():
+        return _build_suite(root, workers, ray_address, echo, start)
+
+
+def _build_suite(
+    root: Path, workers: int, ray_address: str | None, echo: Callable[[str], None], start: float
+) -> SuiteRun:
     if ray_address is not None:
         _check_reachable(ray_address)
     from oodrl.fileio import atomic_write_bytes, atomic_write_text
@@ -229,6 +363,24 @@ def run_suite(
         echo(f"suite: all {len(projects)} projects are up to date (no file DVC checks changed "
              f"since they were found so); nothing to run")  # fmt: skip
         return SuiteRun((), (), time.perf_counter() - start)
+    # The remote and Ray need no `dvc status`: refused in seconds, not after the status checks.
+    remote = default_remote(root)
+    read_only = _check_remote(root, remote) if remote is not None else None
+    if ray_address is not None and remote is None:
+        raise ConfigError("--ray: the nodes share stages through a DVC remote and none is "
+                          "configured; add one every node can reach (README: a shared DVC "
+                          "remote), e.g. `dvc remote add -d lab s3://bucket/oodrl`.")  # fmt: skip
+    if ray_address is not None and read_only:
+        raise ConfigError(f"--ray: the nodes share stages through a DVC remote and "
+                          f"{remote.name!r} is read-only ({read_only}); give them one they can "
+                          f"write (README: a shared DVC remote), or build on this machine with "
+                          f"--workers.")  # fmt: skip
+    if read_only:
+        remote = replace(remote, writable=False)
+        echo(f"suite: remote {remote.name!r} ({remote.options.get('url')}) is read-only "
+             f"({read_only}): restoring from it, building what it lacks locally, pushing "
+             f"nothing")  # fmt: skip
+    echo(f"suite: checking {len(projects)} projects with dvc status ({workers} at a time)")
     watched = _watched_files(root, projects)
     before = _signature(root, watched)  # before the checks: a change during them shows next time
     # One `dvc status` process a project, `workers` at a time: DVC's own index and output
@@ -241,13 +393,6 @@ def run_suite(
         echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
         return SuiteRun((), (), time.perf_counter() - start)
     _refuse_uncommitted_inputs(root, projects)
-    remote = default_remote(root)
-    if remote is not None:
-        _check_writable(root, remote)
-    if ray_address is not None and remote is None:
-        raise ConfigError("--ray: the nodes share stages through a DVC remote and none is "
-                          "configured; add one every node can reach (README: a shared DVC "
-                          "remote), e.g. `dvc remote add -d lab s3://bucket/oodrl`.")  # fmt: skip
     job = {
         "bundle": _bundle(root),
         "commit": _run(root, {}, "git", "rev-parse", "HEAD").stdout.strip(),
@@ -255,12 +400,13 @@ def run_suite(
         "shared_cache": None if ray_address else _cache_dir(root),
     }
     if ray_address is None:
-        tasks = _local_tasks(root, pipelines, job, workers, echo)
+        building = _local_tasks(root, pipelines, job, workers, echo)
     else:
-        tasks = _ray_tasks(root, pipelines, job, ray_address, echo)
+        building = _ray_tasks(root, pipelines, job, ray_address, echo)
     runs: list[PipelineRun] = []
     last_task_ended = start
-    with _dvc_config(remote) as env:
+    # closing: an interruption or a failure while the head restores stops the tasks now.
+    with closing(building) as tasks, _dvc_config(remote) as env:
 
         def restore(built: PipelineRun) -> float:
             """The task's locks and uncached outputs written, every other output checked out
@@ -270,7 +416,8 @@ def run_suite(
             project = root / built.pipeline
             for name, content in built.files.items():
                 atomic_write_bytes(project / name, content)
-            _run(project, env, "dvc", "pull" if remote else "checkout", "--force", "-q")
+            pull = remote and remote.writable  # else the tasks pulled into the shared cache
+            _run(project, env, "dvc", "pull" if pull else "checkout", "--force", "-q")
             return time.perf_counter() - began
 
         # Restored as each task ends, while the others run: projects are separate DVC
@@ -283,6 +430,8 @@ def run_suite(
         done = _run(root / SUITE_DIR, env, "dvc", "repro", *(["--pull"] if remote else []))
         head_ran = [f"{SUITE_DIR.as_posix()}:{stage}" for stage in ran_stages(done.stdout)]
         leaderboard_seconds = time.perf_counter() - began
+        if remote and remote.writable:  # as a task pushes its project: a clone restores it
+            _push(root / SUITE_DIR, env)
     end = time.perf_counter()
     after = end - last_task_ended
     echo(f"suite: done in {end - start:.1f} s, {after:.1f} s of them after the last task; "
@@ -303,16 +452,18 @@ def _local_tasks(
         echo(f"started  {pipeline}")
         return _finished(echo, pipeline, "local", build_pipeline(pipeline=pipeline, **job))
 
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    pool = ThreadPoolExecutor(max_workers=workers)
+    try:
         futures = {
             pool.submit(task, pipeline): pipeline for pipeline in _longest_first(root, pipelines)
         }
         for future in as_completed(futures):
             if future.exception() is not None:
-                for pending in futures:
-                    pending.cancel()  # no new pipeline starts; running ones finish
                 raise SuiteRunError(f"{futures[future]}: {future.exception()}")
             yield future.result()
+    finally:
+        # No new pipeline starts; running ones finish (or stop: an interruption ended them).
+        pool.shutdown(cancel_futures=True)
 
 
 def _longest_first(root: Path, pipelines: list[str]) -> list[str]:
@@ -369,24 +520,53 @@ def _ray_build(**job) -> tuple[float, tuple[str, ...], dict[str, bytes], str]:
     return *build_pipeline(**job), ray.get_runtime_context().get_node_id()
 
 
+#: What `ray.init` asks a head first, its GCS (the cluster's ID), and one request more. In a
+#: process of its own: Ray's C++ client retries and logs on its own, so the process's timeout
+#: bounds it and its captured output keeps the error one line. Ray's own timeouts shortened so
+#: that a refusal says why rather than running out of RAY_HANDSHAKE_S.
+PROBE_GCS = """
+import sys
+from ray._raylet import GcsClient
+GcsClient(address=sys.argv[1]).internal_kv_get(b"oodrl-suite-probe", None, timeout=3)
+"""
+PROBE_ENV = {"RAY_gcs_rpc_server_connect_timeout_s": "2", "RAY_py_gcs_connect_timeout_s": "3"}
+
+
 def _check_reachable(address: str) -> None:
-    """An address nothing answers at is one line now, not a minute of Ray's own retries."""
-    match = re.fullmatch(r"(?:ray://)?([^:/]+):(\d+)", address)
+    """An address nothing answers at, or something other than Ray does (TCP alone passes an
+    HTTP server, then `ray.init` hangs for minutes), is one line in seconds."""
+    match = re.fullmatch(r"(ray://)?([^:/]+):(\d+)", address)
     if match is None:
         raise ConfigError(f"--ray: {address!r} is not HOST:PORT (the address `ray start "
                           f"--head` prints, e.g. 10.0.0.5:6379).")  # fmt: skip
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is None:
+        raise ConfigError("--ray needs Ray, which is not installed: pip install 'oodrl[ray]'.")
     try:
-        socket.create_connection((match[1], int(match[2])), timeout=5).close()
+        socket.create_connection((match[2], int(match[3])), timeout=5).close()
     except OSError as error:
         raise SuiteRunError(f"--ray: no Ray cluster answers at {address} "
                             f"({error.strerror or error}).") from None  # fmt: skip
+    if match[1]:  # a Ray Client server (ray://): `ray.init` handshakes with its own timeout
+        return
+    command = [sys.executable, "-c", PROBE_GCS, f"{match[2]}:{match[3]}"]
+    try:
+        done = subprocess.run(command, env={**os.environ, **PROBE_ENV}, capture_output=True,
+                              timeout=RAY_HANDSHAKE_S)  # fmt: skip
+        answered = done.returncode == 0
+    except subprocess.TimeoutExpired:
+        answered = False
+    if not answered:
+        raise SuiteRunError(f"--ray: {address} accepts connections but does not answer as a Ray "
+                            f"head (GCS handshake, {RAY_HANDSHAKE_S} s); give the address `ray "
+                            f"start --head` prints, e.g. 10.0.0.5:6379.")  # fmt: skip
 
 
 def _up_to_date(project: Path) -> bool:
     """Whether `dvc repro` of a project would run nothing (every lock and output current)."""
     command = [sys.executable, "-m", "dvc", "status", "--quiet"]
-    env = task_environment(Path(_git_root(project)))
-    return subprocess.run(command, cwd=project, env=env, capture_output=True).returncode == 0
+    return _spawn(command, project, task_environment(Path(_git_root(project)))).returncode == 0
 
 
 #: What the suite's projects looked like when every `dvc status` found them current.
@@ -491,26 +671,75 @@ def _cache_dir(root: Path) -> str:
     return _run(root, {}, "dvc", "cache", "dir").stdout.strip()
 
 
-def _check_writable(root: Path, remote: Remote) -> None:
-    """A remote that refuses is one line before any task starts, not after each has run:
-    write and delete a probe file at its top. (A directory remote may not exist yet: DVC
-    makes it on the first push; a bucket is never created.)"""
+def _check_remote(root: Path, remote: Remote) -> str | None:
+    """None for a remote the run can write; why it is read-only otherwise: an HTTP(S) URL (DVC
+    pushes there by POST, which a static server or a bucket's HTTPS view refuses), or a remote
+    that refuses the probe write. One that does not answer, or does not exist, is an error."""
+    if remote.options.get("url", "").split("://")[0].lower() in ("http", "https"):
+        _check_answers(remote)
+        return "HTTP"
+    return _check_writable(root, remote)
+
+
+def _check_answers(remote: Remote) -> None:
+    """Any HTTP answer at the remote's URL passes (a bucket's HTTPS view answers 403 or 404 at
+    its top); none is one line, where `dvc pull --allow-missing` would pass over it in silence
+    and every stage would run."""
+    import ssl
+    import urllib.error
+    import urllib.request
+
+    url = remote.options["url"]
+    verify = remote.options.get("ssl_verify", "true")  # DVC's option: a bool or a CA bundle
+    context = ssl.create_default_context(
+        cafile=None if verify.lower() in ("true", "false") else verify
+    )
+    if verify.lower() == "false":
+        context.check_hostname, context.verify_mode = False, ssl.CERT_NONE
+    try:
+        request = urllib.request.Request(url, method="HEAD")
+        urllib.request.urlopen(request, timeout=REMOTE_ANSWER_S, context=context).close()
+    except urllib.error.HTTPError:
+        pass  # it answered
+    except OSError as error:  # URLError, a timeout
+        why = getattr(error, "reason", None) or error
+        raise SuiteRunError(f"DVC remote {remote.name!r} ({url}) does not answer: "
+                            f"{why}") from None  # fmt: skip
+
+
+def _check_writable(root: Path, remote: Remote) -> str | None:
+    """Write and delete a probe file at the remote's top: None if it can, DVC's reason if the
+    write is refused (a permission: the remote is read-only). Any other failure is one line
+    before any task starts, not after each has run. The check creates nothing: a directory
+    remote that does not exist is refused (a typo in its URL would otherwise become a new,
+    empty remote that the whole suite builds into), as a bucket that does not exist is."""
+    import errno
     import uuid
 
     from dvc.repo import Repo
 
+    missing = None
     try:
         with Repo(str(root)) as repo:
             target = repo.cloud.get_remote(remote.name)
-            if target.fs.protocol == "local":
-                target.fs.makedirs(target.path, exist_ok=True)
-            probe = target.fs.join(target.path, f"oodrl-suite-probe-{uuid.uuid4().hex}")
-            target.fs.pipe_file(probe, b"")
-            target.fs.rm_file(probe)
-    except Exception as error:  # noqa: BLE001 - any refusal, whatever the filesystem raises
+            if target.fs.protocol == "local" and not os.path.isdir(target.path):
+                missing = target.path
+            else:
+                probe = target.fs.join(target.path, f"oodrl-suite-probe-{uuid.uuid4().hex}")
+                target.fs.pipe_file(probe, b"")
+                target.fs.rm_file(probe)
+    except Exception as error:  # noqa: BLE001 - any failure, whatever the filesystem raises
         why = str(error).splitlines()[0] if str(error) else type(error).__name__
+        if isinstance(error, PermissionError) or getattr(error, "errno", None) == errno.EROFS:
+            return f"it refuses a write: {why}"
         raise SuiteRunError(f"DVC remote {remote.name!r} ({remote.options.get('url')}) "
-                            f"refuses a write: {why}") from None  # fmt: skip
+                            f"fails a probe write: {why}") from None  # fmt: skip
+    if missing is not None:
+        what = "is not a directory" if os.path.exists(missing) else "does not exist"
+        raise SuiteRunError(f"DVC remote {remote.name!r}: {missing} {what}; create the "
+                            f"directory yourself, or fix the remote's URL (`dvc remote modify "
+                            f"{remote.name} url DIR`); oodrl creates no remote.")  # fmt: skip
+    return None
 
 
 def _bundle(root: Path) -> bytes:

@@ -17,6 +17,19 @@ from typing import Any
 from oodrl.errors import ConfigError
 
 
+class ParameterError(ConfigError):
+    """A ConfigError about one parameter of a component: params errors name it by its key
+    (`detectors.<name>.<param>`) where the message alone might not (a library's may not)."""
+
+    def __init__(self, param: str, message: str) -> None:
+        super().__init__(message)
+        self.param = param
+
+    def __reduce__(self):
+        # Rebuilt from both arguments when it crosses a process boundary (stage workers).
+        return type(self), (self.param, str(self))
+
+
 @dataclass(frozen=True)
 class Interval:
     """A number of `kind` (int or float) between `low` and `high` (None = unbounded)."""

@@ -148,7 +148,8 @@ def test_wrong_constructor_argument_through_the_oodrl_command(project, default_p
     assert done.returncode == 2, done.stdout + done.stderr
     message = done.stderr.strip()
     assert "\n" not in message and "Traceback" not in message
-    assert message.startswith("error: params.yaml: detectors.library_one: ")
+    # The argument is named in the key: `detectors.<name>.<argument>`.
+    assert message.startswith("error: params.yaml: detectors.library_one.n_trees: ")
     assert "IForest" in message and "'n_trees'" in message
 
 
@@ -262,11 +263,19 @@ def test_window_view_stacks_the_last_states_oldest_first():
     assert DETECTORS.get("pyod.models.knn:KNN")(features="transition").latency == 1
 
 
-def test_sklearn_lof_without_novelty_is_refused_with_the_reason():
-    from oodrl.errors import ConfigError
+@pytest.mark.parametrize(
+    ("path", "params"),
+    [("sklearn.neighbors:LocalOutlierFactor", {}), ("pyod.models.lof:LOF", {"novelty": False})],
+    ids=["sklearn_default", "pyod_novelty_false"],
+)
+def test_lof_without_novelty_is_told_to_set_it(path, params):
+    """Without novelty=True scikit-learn's LOF scores only its fit rows (no score_samples;
+    PyOD's LOF fails in fit): the message says what to set, not that the API is missing."""
+    from oodrl.validation import ParameterError
 
-    with pytest.raises(ConfigError, match="neither fit and decision_function"):
-        DETECTORS.get("sklearn.neighbors:LocalOutlierFactor").from_params({})
+    with pytest.raises(ParameterError, match="Allowed: novelty: true") as info:
+        DETECTORS.get(path).from_params(params)
+    assert info.value.param == "novelty"
 
 
 def test_time_index_scores_the_step_and_streams_it():
@@ -321,8 +330,8 @@ def _results_document(uncertified: list[str]) -> dict:
 def test_results_and_leaderboard_mark_uncertified_detectors_per_row(tmp_path):
     from oodrl import yamlio
     from oodrl.metrics.results import Results
-    from oodrl.report.leaderboard import run_leaderboard
     from oodrl.report.tables import headline_table
+    from oodrl.stages.leaderboard import run_leaderboard
 
     # Every detector certified (the root pipeline): results.yaml has no section for it.
     assert "uncertified_detectors" not in Results([], {}, {}, {}).results_document()

@@ -20,9 +20,11 @@ constructed object, in this order:
 oodrl's own keys (`features`, `window`, `standardize`, `threshold_rule`, `threshold_percentile`,
 `alpha`, `seed`) configure the wrapper; every other key of the block is a constructor argument of
 the library class, validated by constructing it (a scikit-learn estimator's value constraints
-too). `seed` is passed on as the library's `random_state` (or `seed`, river) unless the block
-sets that argument itself. The library's own threshold (`contamination`) is ignored: alarms come
-from oodrl's calibration.
+too), and by `oodrl check-params` fitting it on dummy data (`oodrl.params_check`): some libraries
+check an argument only in fit. A key that is oodrl's and the library's too (HBOS's `alpha`) is
+oodrl's; where oodrl would not read it, it is refused. `seed` is passed on as the library's
+`random_state` (or `seed`, river) unless the block sets that argument itself. The library's own
+threshold (`contamination`) is ignored: alarms come from oodrl's calibration.
 
 Feature views (`features`): "state", "state_action", "transition" (`oodrl.detectors.features`),
 or "window", the last `window` = L states stacked oldest first (L·d_s columns); the first L − 1
@@ -61,7 +63,7 @@ import functools
 import inspect
 import sys
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar
 
 import numpy as np
@@ -79,7 +81,7 @@ from oodrl.detectors.features import (
     trajectory_features,
 )
 from oodrl.errors import ConfigError, DetectorError
-from oodrl.validation import Interval, IsType, Options, constructor_params
+from oodrl.validation import Interval, IsType, Options, ParameterError, constructor_params
 
 FEATURE_VIEWS = (*FEATURE_SETS, "window")
 #: The library APIs a wrapped class may have (see the module docstring).
@@ -123,6 +125,39 @@ def as_detector(obj: Any) -> Any:
         and any(callable(getattr(obj, method, None)) for method in ("score_one", *APIS[1:]))
     )
     return library_detector_class(obj) if is_library_class else obj
+
+
+#: What a detector's `class:` may name (SPEC §17).
+ALLOWED_CLASSES = (
+    "an oodrl detector class, or a class with fit and decision_function or score_samples "
+    "(PyOD, scikit-learn) or with learn_one and score_one (river)"
+)
+
+
+def check_detector_class(obj: Any, path: str) -> None:
+    """Refuse what the detector registry returned for `path` unless it is a detector class
+    (`as_detector` has wrapped any class of a library's outlier API by then)."""
+    if isinstance(obj, type) and issubclass(obj, BaseDetector):
+        return
+    if not isinstance(obj, type):
+        what = f"is not a class (it is a {type(obj).__name__})"
+    else:
+        methods = ("fit", "decision_function", "score_samples", "learn_one", "score_one")
+        missing = [m for m in methods if not callable(getattr(obj, m, None))]
+        what = f"has no outlier API: no {', '.join(missing)}"
+    raise ConfigError(f"{path} {what}. Allowed: {ALLOWED_CLASSES}.")
+
+
+def blame(params: Mapping[str, Any], attempt: Callable[[dict[str, Any]], object]) -> str | None:
+    """The first key of `params` with which alone (the others at their defaults) `attempt`
+    raises, or None: a library's message does not always name its argument (PyOD's HBOS: "is
+    set to -1. Not in the range of (2, inf)")."""
+    for key, value in params.items():
+        try:
+            attempt({key: value})
+        except Exception:  # the library's own error, whatever its type
+            return key
+    return None
 
 
 def library_detectors_named(detector_blocks: Any) -> dict[str, str]:
@@ -171,6 +206,14 @@ def cache_numba_kernels(module_name: str) -> None:
                 value.enable_caching()
 
 
+def _signature(library_class: type) -> Mapping[str, Any]:
+    """The library class's constructor parameters; none for a C class without a signature."""
+    try:
+        return inspect.signature(library_class).parameters
+    except (TypeError, ValueError):
+        return {}
+
+
 def _restore(path: str, state: dict[str, Any]) -> LibraryDetector:
     """Unpickle a LibraryDetector: its class is rebuilt from the library class's path."""
     from oodrl.registry import import_path
@@ -183,6 +226,14 @@ def _restore(path: str, state: dict[str, Any]) -> LibraryDetector:
 
 #: BaseDetector's own keyword arguments (threshold rule, alpha, seed).
 _BASE_PARAMS = tuple(constructor_params(BaseDetector))
+#: oodrl's keys that a block may set and oodrl may leave unread: key -> (what it is, the key
+#: and value under which oodrl reads it). A library argument of the same name never sees the
+#: block's value (oodrl's keys come first), so setting one that oodrl ignores is refused.
+_READ_ONLY_WITH = {
+    "alpha": ("the episode_max false-alarm bound", "threshold_rule", "episode_max"),
+    "threshold_percentile": ("the percentile threshold", "threshold_rule", "percentile"),
+    "window": ("the window view's length", "features", "window"),
+}
 
 
 class LibraryDetector(BaseDetector):
@@ -232,6 +283,23 @@ class LibraryDetector(BaseDetector):
         instance.validate_params()
         return instance
 
+    def refuse_shadowed(self, block: Mapping[str, Any]) -> None:
+        """Refuse a key the params block sets that is both oodrl's and the library's where
+        oodrl ignores it: the user meant the library's argument (HBOS's `alpha`), which never
+        gets the value (`oodrl check-params`; a clone built from get_params sets every key)."""
+        library_arguments = _signature(self.library_class)
+        for key in block:
+            if key not in _READ_ONLY_WITH or key not in library_arguments:
+                continue
+            what, switch, value = _READ_ONLY_WITH[key]
+            if getattr(self, switch) != value:
+                raise ParameterError(
+                    key,
+                    f"'{key}' is oodrl's key ({what}), read only with {switch}: {value}, so "
+                    f"{self.library_class.__name__}'s own '{key}' cannot be set here and the "
+                    f"value would be ignored. Allowed: remove it, or set {switch}: {value}.",
+                )
+
     def __reduce__(self):
         # The class is made at run time, so pickle names the library class instead.
         return _restore, (class_path(self.library_class), self.__dict__)
@@ -247,27 +315,37 @@ class LibraryDetector(BaseDetector):
         return self.features != "window"
 
     # -- the library object ---------------------------------------------------------------
-    def _library_kwargs(self) -> dict[str, Any]:
-        kwargs = dict(self.library_params)
-        try:
-            accepted = inspect.signature(self.library_class).parameters
-        except (TypeError, ValueError):  # a C class without a signature: pass nothing extra
-            accepted = {}
+    def _construct(self, library_params: Mapping[str, Any]) -> Any:
+        """The library object built with these arguments (and oodrl's seed)."""
+        kwargs = dict(library_params)
+        accepted = _signature(self.library_class)
         seed_argument = next((a for a in SEED_ARGUMENTS if a in accepted), None)
         if seed_argument is not None and seed_argument not in kwargs:
             kwargs[seed_argument] = self.seed
-        return kwargs
+        model = self.library_class(**kwargs)
+        # scikit-learn checks argument values in fit, against constraints its estimators
+        # declare (PyOD's inherit the checker but declare none); the check needs no data.
+        if hasattr(model, "_parameter_constraints"):
+            model._validate_params()
+        return model
 
     def _new_model(self) -> tuple[Any, str]:
-        """A fresh library object and its API; a ConfigError names the detector otherwise."""
+        """A fresh library object and its API; a ConfigError names the detector (and the
+        argument, where one alone is refused) otherwise."""
         try:
-            model = self.library_class(**self._library_kwargs())
-            # scikit-learn checks argument values in fit, against constraints its estimators
-            # declare (PyOD's inherit the checker but declare none); the check needs no data.
-            if hasattr(model, "_parameter_constraints"):
-                model._validate_params()
+            model = self._construct(self.library_params)
         except Exception as error:  # the library's own error, whatever its type
-            raise ConfigError(f"{self.name}: {one_line(error)}") from None
+            message = f"{self.name}: {one_line(error)}"
+            key = blame(self.library_params, self._construct)
+            raise (ConfigError(message) if key is None else ParameterError(key, message)) from None
+        if getattr(model, "novelty", True) is False:
+            # scikit-learn's LocalOutlierFactor (and PyOD's LOF over it) scores only its own
+            # fit rows unless novelty=True: it would fail at fit or at scoring, not here.
+            raise ParameterError(
+                "novelty",
+                f"{self.name} scores new rows only in novelty mode (without it, only the rows "
+                "it was fitted on). Allowed: novelty: true.",
+            )
         api = library_api(model)
         if api is None:
             raise ConfigError(

@@ -1,0 +1,238 @@
+"""`oodrl suite run` against hostile inputs (issue 37): a DVC remote whose directory does not
+exist, a --ray address where something other than Ray answers, checks that need no `dvc status`
+made after it, and a run ended by SIGTERM. Each refusal is one line and changes nothing.
+
+The repository is the suite's shape at its smallest: the root's DVC project and one pipeline's
+(pipeline/a), each one stage, and the leaderboard's project (pipeline/suite) reading the
+pipeline's results; `oodrl suite run` builds it as it builds the real suite."""
+
+from __future__ import annotations
+
+import http.server
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from typer.testing import CliRunner
+
+from oodrl import suite_run
+from oodrl.cli import app
+from oodrl.suite_run import SuiteRunError, run_suite
+
+QUICK = "mkdir -p reports && echo built > reports/results.yaml"
+#: A stage that marks its start in its clone, then runs long enough to be interrupted.
+SLOW = "mkdir -p reports && touch reports/started && sleep 300 && echo built > reports/results.yaml"
+DVC_GITIGNORE = "/config.local\n/tmp\n/cache\n"
+
+
+def _git(repo: Path, *args: str) -> str:
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@localhost",
+           "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@localhost"}  # fmt: skip
+    done = subprocess.run(["git", *args], cwd=repo, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def _dvc(repo: Path, *args: str) -> None:
+    done = subprocess.run([sys.executable, "-m", "dvc", *args], cwd=repo, capture_output=True)
+    assert done.returncode == 0, done.stderr
+
+
+def _project(directory: Path, cache: str | None, stages: str) -> None:
+    """A DVC project (what `dvc init --subdir` and `oodrl pipeline write` leave) with `stages`."""
+    (directory / ".dvc").mkdir(parents=True)
+    cache_section = f"[cache]\n    dir = {cache}\n" if cache else ""
+    (directory / ".dvc" / "config").write_text(f"[core]\n    analytics = false\n{cache_section}")
+    (directory / ".dvc" / ".gitignore").write_text(DVC_GITIGNORE)
+    (directory / "dvc.yaml").write_text(f"stages:\n{stages}")
+
+
+def tiny_suite(repo: Path, command: str) -> Path:
+    """The root and pipeline/a, each a stage running `command`, and the leaderboard, committed."""
+    build = f"  build:\n    cmd: {command}\n    outs:\n      - reports/results.yaml\n"
+    _project(repo, None, build)
+    _project(repo / "pipeline" / "a", "../../../.dvc/cache", build)
+    leaderboard = ("  leaderboard:\n    cmd: cat ../a/reports/results.yaml > leaderboard.txt\n"
+                   "    deps:\n      - ../a/reports/results.yaml\n"
+                   "    outs:\n      - leaderboard.txt\n")  # fmt: skip
+    _project(repo / "pipeline" / "suite", "../../../.dvc/cache", leaderboard)
+    _git(repo, "init", "-q")
+    _git(repo, "add", "-A")
+    _git(repo, "commit", "-q", "-m", "a tiny suite")
+    return repo
+
+
+def with_remote(repo: Path, url: Path) -> Path:
+    """The remote as the README says: the root's git-ignored config.local, the default."""
+    _dvc(repo, "remote", "add", "--local", "-d", "lab", str(url))
+    return repo
+
+
+def _files(directory: Path) -> dict[str, bytes]:
+    """Every file under `directory` but git's and DVC's own scratch."""
+    files = {path.relative_to(directory): path for path in directory.rglob("*") if path.is_file()}
+    return {
+        name.as_posix(): path.read_bytes()
+        for name, path in files.items()
+        if ".git" not in name.parts and "tmp" not in name.parts
+    }
+
+
+# -- 1. a directory remote that does not exist -------------------------------------------------
+def test_a_missing_directory_remote_is_refused_and_not_created(tmp_path):
+    missing = tmp_path / "typo" / "remote"
+    repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), missing)
+    before = _files(tmp_path)
+    result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
+    assert result.exit_code == 1, result.output
+    assert result.output.count("\n") == 1  # the error alone: nothing ran before it
+    assert f"DVC remote 'lab': {missing} does not exist; create the directory yourself" in (
+        result.output
+    )
+    assert not (tmp_path / "typo").exists()
+    assert _files(tmp_path) == before
+
+
+def test_a_remote_that_is_a_file_is_refused(tmp_path):
+    (tmp_path / "remote").write_text("not a directory\n")
+    repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
+    with pytest.raises(SuiteRunError, match="remote is not a directory; create the directory"):
+        suite_run._check_writable(repo, suite_run.default_remote(repo))
+
+
+# -- 2. a --ray address where something other than Ray answers ---------------------------------
+@pytest.fixture
+def http_server():
+    """A loopback HTTP server on a free port: it accepts TCP, as a Ray head would."""
+
+    class Quiet(http.server.BaseHTTPRequestHandler):
+        def log_message(self, *args) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Quiet)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield f"127.0.0.1:{server.server_address[1]}"
+    server.shutdown()
+    server.server_close()
+
+
+def test_a_ray_address_that_is_not_ray_is_refused_in_seconds(http_server, tmp_path):
+    began = time.monotonic()
+    result = CliRunner().invoke(
+        app, ["suite", "run", "--root", str(tmp_path), "--ray", http_server]
+    )
+    seconds = time.monotonic() - began
+    assert result.exit_code == 1, result.output
+    assert result.output.count("\n") == 1
+    assert f"--ray: {http_server} accepts connections but does not answer as a Ray head" in (
+        result.output
+    )
+    # ray.init went on for minutes; the handshake is bounded (a loaded machine: some slack).
+    assert seconds < suite_run.RAY_HANDSHAKE_S + 10
+
+
+@pytest.mark.slow
+def test_a_ray_head_passes_the_handshake():
+    from ray.cluster_utils import Cluster
+
+    cluster = Cluster(initialize_head=True, head_node_args={"num_cpus": 0})
+    try:
+        suite_run._check_reachable(cluster.address)  # no error
+    finally:
+        cluster.shutdown()
+
+
+# -- 3. the checks that need no `dvc status` first, and a line at once -------------------------
+@pytest.fixture
+def status_calls(monkeypatch) -> list[str]:
+    """The projects `dvc status` is asked about, in order (each found current)."""
+    calls: list[str] = []
+
+    def up_to_date(project: Path) -> bool:
+        calls.append(project.name)
+        return True
+
+    monkeypatch.setattr(suite_run, "_up_to_date", up_to_date)
+    return calls
+
+
+def test_the_remote_is_refused_before_any_dvc_status(tmp_path, status_calls):
+    (tmp_path / "remote").write_text("not a directory\n")
+    repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
+    with pytest.raises(SuiteRunError, match="is not a directory"):
+        run_suite(repo, workers=2, echo=lambda line: None)
+    assert status_calls == []
+
+
+def test_ray_without_a_remote_is_refused_before_any_dvc_status(tmp_path, status_calls, monkeypatch):
+    from oodrl.errors import ConfigError
+
+    monkeypatch.setattr(suite_run, "_check_reachable", lambda address: None)  # a live cluster
+    repo = tiny_suite(tmp_path / "repo", QUICK)
+    with pytest.raises(ConfigError, match="--ray: the nodes share stages through a DVC remote"):
+        run_suite(repo, workers=2, ray_address="127.0.0.1:6379", echo=lambda line: None)
+    assert status_calls == []
+
+
+def test_a_progress_line_comes_before_the_status_checks(tmp_path, monkeypatch):
+    (tmp_path / "remote").mkdir()
+    repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
+    lines: list[str] = []
+    seen_by_status: list[list[str]] = []
+
+    def up_to_date(project: Path) -> bool:
+        seen_by_status.append(list(lines))
+        return True
+
+    monkeypatch.setattr(suite_run, "_up_to_date", up_to_date)
+    run_suite(repo, workers=2, echo=lines.append)
+    assert len(seen_by_status) == 3
+    assert seen_by_status[0] == ["suite: checking 3 projects with dvc status (2 at a time)"]
+    assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"
+
+
+# -- 4. SIGTERM during a run ---------------------------------------------------------------------
+def _started(scratch: Path) -> int:
+    """How many tasks' stages have begun (their clones hold the stage's mark)."""
+    try:
+        return len(list(scratch.glob("oodrl-suite-*/repo/**/reports/started")))
+    except FileNotFoundError:  # a task directory went while it was read
+        return 0
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP"])
+def test_a_signal_mid_run_leaves_no_temporary_directory(tmp_path, name):
+    (tmp_path / "remote").mkdir()  # with a remote: each task and the head have a DVC config dir
+    repo = with_remote(tiny_suite(tmp_path / "repo", SLOW), tmp_path / "remote")
+    scratch = tmp_path / "tmp"
+    scratch.mkdir()
+    status = _git(repo, "status", "--porcelain", "--untracked-files=all")
+    command = [str(Path(sys.executable).parent / "oodrl"), "suite", "run", "--root", str(repo)]
+    process = subprocess.Popen(
+        command, env={**os.environ, "TMPDIR": str(scratch)}, stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 300  # a loaded 2-core machine: DVC starts slowly
+        while _started(scratch) < 2:  # both tasks (the root's and pipeline/a) in their stage
+            assert process.poll() is None, process.communicate()
+            assert time.monotonic() < deadline, "the tasks never started their stages"
+            time.sleep(0.2)
+        assert len(list(scratch.glob("oodrl-dvc-config-*"))) == 3  # two tasks' and the head's
+        process.send_signal(getattr(signal, name))
+        _, stderr = process.communicate(timeout=120)
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+            process.wait()
+    assert process.returncode != 0
+    assert "Traceback" not in stderr
+    assert sorted(path.name for path in scratch.iterdir() if path.name.startswith("oodrl-")) == []
+    assert _git(repo, "status", "--porcelain", "--untracked-files=all") == status
