@@ -39,6 +39,16 @@ def test_linear_is_the_correctly_rounded_exact_result(x, w, b):
     np.testing.assert_array_equal(numerics.linear(x, w, b), exact_linear(x, w, b))
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    arrays(np.float32, (3, 7), elements=finite32),
+    arrays(np.float32, (4, 7), elements=finite32),
+    arrays(np.float32, (4,), elements=finite32),
+)
+def test_affine_is_the_correctly_rounded_exact_result(x, w, b):
+    np.testing.assert_array_equal(numerics.Affine(w, b)(x), exact_linear(x, w, b))
+
+
 def test_linear_handles_cancellation_that_float64_blas_gets_wrong():
     # 1e8 + 1 − 1e8 in float32 products: the exact sum is 1 (float64 gets it right here, the
     # point is that near-ties are resolved exactly, not by the kernel's summation order).
@@ -128,6 +138,78 @@ def test_linear_every_bound_level_equals_exact_integer_sums(
         np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
 
 
+@pytest.mark.parametrize("k", [3, 40, 160])
+@pytest.mark.parametrize("bits", [12, 20])
+def test_affine_equals_exact_integer_sums_also_where_it_is_uncertain(monkeypatch, k, bits):
+    # As for linear: ties, zero rows and cancelling rows, which its Cauchy–Schwarz bound
+    # cannot certify: those entries take the exact path.
+    rng = np.random.default_rng(k)
+    scale = 7
+    x = integer_valued(rng, (70, k), bits, scale)
+    w = integer_valued(rng, (50, k), bits, scale)
+    x[:10] = 0
+    x[10:20, : k // 2 * 2 : 2] = x[10:20, 1 : k // 2 * 2 : 2]
+    w[:25, : k // 2 * 2 : 2] = -w[:25, 1 : k // 2 * 2 : 2]
+    b = integer_valued(rng, (50,), bits, scale)
+    exact_entries = []
+    original = numerics._exact_entries
+
+    def spy(x_rows, *args):
+        exact_entries.append(len(x_rows))
+        return original(x_rows, *args)
+
+    monkeypatch.setattr(numerics, "_exact_entries", spy)
+    got = numerics.Affine(w, b)(x)
+    expected = exact_integer_linear(x, w, b, scale)
+    np.testing.assert_array_equal(got.view(np.uint32), expected.view(np.uint32))
+    assert sum(exact_entries) > 0
+
+
+def _exact_relu_network(x, layers):
+    """The exact network ReluArgmax stands for: `linear` and `relu`, every output rounded."""
+    for i, (w, b) in enumerate(layers):
+        x = numerics.linear(x, w, b)
+        x = numerics.relu(x) if i < len(layers) - 1 else x
+    return x
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.sampled_from([2, 6, 24]))
+def test_relu_argmax_decides_only_the_exact_argmax(seed, bits):
+    # Integer-valued weights of few bits; outputs 0 and 1 tie exactly, output 2 is output 0
+    # with one weight a float32 ulp larger: far below the hidden layers' rounding.
+    rng = np.random.default_rng(seed)
+    sizes = [5, 24, 24, 4]
+    layers = [
+        (integer_valued(rng, (m, k), bits, 3), integer_valued(rng, (m,), bits, 3))
+        for k, m in zip(sizes[:-1], sizes[1:], strict=True)
+    ]
+    w, b = layers[-1]
+    w[1:3], b[1:3] = w[0], b[0]
+    w[2, 0] = np.nextafter(w[0, 0], np.float32(np.inf))
+    x = integer_valued(rng, (64, 5), bits, 3)
+    action, decided = numerics.ReluArgmax([numerics.Affine(w, b) for w, b in layers])(x)
+    exact = _exact_relu_network(x, layers).argmax(axis=1)
+    np.testing.assert_array_equal(action[decided], exact[decided])
+    assert not decided[exact <= 1].any()
+
+
+def test_relu_argmax_decides_most_rows_of_a_generic_network():
+    rng = np.random.default_rng(0)
+    sizes = [8, 256, 256, 4]
+    layers = [
+        (
+            (rng.standard_normal((m, k)) / np.sqrt(k)).astype(np.float32),
+            rng.standard_normal(m).astype(np.float32),
+        )
+        for k, m in zip(sizes[:-1], sizes[1:], strict=True)
+    ]
+    x = rng.standard_normal((1000, 8)).astype(np.float32)
+    action, decided = numerics.ReluArgmax([numerics.Affine(w, b) for w, b in layers])(x)
+    np.testing.assert_array_equal(action, _exact_relu_network(x, layers).argmax(axis=1))
+    assert decided.mean() > 0.99
+
+
 def test_linear_broadcasts_inputs_over_members():
     rng = np.random.default_rng(3)
     x = integer_valued(rng, (300, 20), 10, 5)
@@ -140,7 +222,7 @@ def test_linear_broadcasts_inputs_over_members():
     np.testing.assert_array_equal(got, exact_integer_linear(x, w, b, 5))
 
 
-def test_linear_zero_results_are_positive_zero():
+def test_linear_and_affine_zero_results_are_positive_zero():
     # −0 products (0 × negative), and a tiny negative exact sum that rounds to zero.
     x = np.array([[0.0, 0.0], [2.0**-100, 0.0]], np.float32)
     w = np.array([[-1.0, -2.0], [-(2.0**-100), 1.0]], np.float32)
@@ -149,13 +231,18 @@ def test_linear_zero_results_are_positive_zero():
     assert (zeros == 0).all()
     assert not np.signbit(zeros).any()
     assert out[1, 0] == np.float32(-(2.0**-100))
+    np.testing.assert_array_equal(
+        numerics.Affine(w, np.zeros(2, np.float32))(x).view(np.uint32), out.view(np.uint32)
+    )
 
 
-def test_linear_overflowing_magnitude_takes_the_exact_path():
+def test_linear_and_affine_overflowing_magnitude_take_the_exact_path():
     # |x|·|w| overflows float32 in the bound's product, yet the exact sum is small.
     x = np.array([[3e38, 3e38, 1.0]], np.float32)
     w = np.array([[1.0, -1.0, 0.5], [2.0, -2.0, 0.25]], np.float32)
     np.testing.assert_array_equal(numerics.linear(x, w), np.array([[0.5, 0.25]], np.float32))
+    affine = numerics.Affine(w, np.zeros(2, np.float32))
+    np.testing.assert_array_equal(affine(x), np.array([[0.5, 0.25]], np.float32))
 
 
 def _index_order_matmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:

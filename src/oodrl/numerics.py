@@ -20,6 +20,11 @@ result, a quantity that has one answer whatever the summation order:
 A zero result is always +0: an interval around zero rounds to ±0 at both ends, and which sign
 the kernel's rounding produced is not part of the answer.
 
+A policy acts on small batches with the same weights thousands of times: :class:`Affine` is
+`linear` with the weights prepared once and a cheaper magnitude bound, the same bits; and where
+only a ReLU network's argmax is used (a discrete action), :class:`ReluArgmax` certifies it from
+one plain float64 pass without rounding every layer, deferring the rare undecided rows.
+
 ``tanh`` is handled the same way: any libm's float64 ``tanh`` is within a few ulp of the truth;
 the rare entries whose interval straddles a float32 rounding boundary are computed with
 ``decimal`` at 50 significant digits. Elementwise IEEE operations (``+ − × ÷ √``, ``max``) are
@@ -47,11 +52,15 @@ from __future__ import annotations
 import decimal
 import math
 import threading
+from collections.abc import Sequence
 from fractions import Fraction
+from typing import NamedTuple
 
 import numpy as np
 
 _UNIT_ROUNDOFF = 2.0**-53
+#: The same for float32 (round to nearest).
+_FLOAT32_UNIT = 2.0**-24
 #: Max error of a float64 tanh from any reasonable libm, in ulp, with a wide margin.
 _TANH_ULPS = 8
 
@@ -117,15 +126,60 @@ def linear(x: np.ndarray, weight: np.ndarray, bias: np.ndarray | None = None) ->
     lead, i, j = index[:-2], index[-2], index[-1]
     rows = np.broadcast_to(x64, (*y.shape[:-1], x32.shape[-1]))
     cols = np.broadcast_to(np.swapaxes(w64_t, -1, -2), (*y.shape[:-2], *w32.shape[-2:]))
+    entry_bias = None if b64 is None else np.broadcast_to(b64, y.shape)[index]
+    result[index] = _exact_entries(rows[(*lead, i)], cols[(*lead, j)], entry_bias, values, gamma)
+    return result
+
+
+def _exact_entries(
+    x_rows: np.ndarray, w_rows: np.ndarray, bias: np.ndarray | None, values: np.ndarray, gamma
+) -> np.ndarray:
+    """Levels 3 and 4 of `linear`: float32 entries ``x_rows · w_rows + bias``, one per row
+    of the float64 copies of float32 ``x_rows`` and ``w_rows`` (e, k) and ``bias`` (e,), whose
+    float64 sums were ``values``: certified by each entry's own magnitude, else ``math.fsum``."""
     # Products of two float32 numbers are exact in float64: the sums below are exact.
-    products = rows[(*lead, i)] * cols[(*lead, j)]
-    if b64 is not None:
-        products = np.concatenate([products, np.broadcast_to(b64, y.shape)[index][:, None]], 1)
+    products = x_rows * w_rows
+    if bias is not None:
+        products = np.concatenate([products, bias[:, None]], 1)
     rounded, still = _round_within(values, 2 * gamma * np.abs(products).sum(axis=1))
     for entry in np.flatnonzero(still):
         rounded[entry] = _nearest_float32_of_sum(products[entry].tolist())
-    result[index] = rounded
-    return result
+    return rounded
+
+
+class Affine:
+    """``x @ weightᵀ + bias`` for one fixed float32 weight (m, k) and bias (m,): the same bits
+    as `linear`, cheaper for the small batches a policy acts on, call after call.
+
+    The weights' float64 copy and row norms ‖W_j‖₂ are made once. The magnitude bound of step 1
+    of the module docstring is then, by Cauchy–Schwarz, ``Σ_l |x_l||w_jl| + |b_j| ≤
+    ‖x‖₂‖W_j‖₂ + |b_j|``: one norm per row, no second matrix product. It is looser than
+    `linear`'s, but still far inside a float32 rounding interval (γ_{k+1} ≈ k·2⁻⁵³ against
+    2⁻²⁴ relative), so few entries are left uncertain; they take `linear`'s levels 3 and 4.
+    As there, a computed bound B is at least half its exact value, so ``2γ_{k+1}·B`` bounds the
+    error.
+    """
+
+    def __init__(self, weight: np.ndarray, bias: np.ndarray) -> None:
+        self.w_t = np.asarray(weight, np.float32).T.astype(np.float64)  # (k, m), exact copies
+        self.b = np.asarray(bias, np.float32).astype(np.float64)
+        self.gamma = _gamma(len(self.w_t) + 1)
+        self.norms = np.sqrt(np.square(self.w_t).sum(axis=0))  # ‖W_j‖₂; float32 squares exact
+        self.abs_b = np.abs(self.b)
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        x64 = np.asarray(x, dtype=np.float32).astype(np.float64)
+        y = x64 @ self.w_t
+        y += self.b
+        bound = np.multiply.outer(_row_norms(x64), self.norms)
+        bound += self.abs_b
+        bound *= 2 * self.gamma
+        result, uncertain = _round_within(y, bound)
+        if uncertain.any():
+            i, j = np.nonzero(uncertain)
+            w_rows = self.w_t[:, j].T
+            result[i, j] = _exact_entries(x64[i], w_rows, self.b[j], y[i, j], self.gamma)
+        return result
 
 
 #: Outputs up to this size, or sums of this many terms, get every entry's magnitude at once.
@@ -174,6 +228,106 @@ def _gamma(n: int) -> float:
 
 def relu(x: np.ndarray) -> np.ndarray:
     return np.maximum(x, np.float32(0))
+
+
+class ReluArgmax:
+    """The argmax of a ReLU network's outputs, decided in plain float64 where that is certain.
+
+    The exact network is what `linear` and `relu` compute layer by layer: ``h_0 = x``,
+    ``h_l = relu(R(W_l h_{l−1} + b_l))``, outputs ``q = R(W_L h_{L−1} + b_L)``, R the
+    rounding to float32; the action is ``q.argmax()``, the first index of the maximum. Here
+    the layers run once in float64 (BLAS, any kernel) without R, and each row carries a bound
+    D ≥ ‖d‖₂ on its error vector d, ``|h̃ − h| ≤ d`` entrywise (D = 0 for the float32 input).
+    For a layer with k inputs, m outputs and a = γ_{k+1}‖h̃‖₂ + D, for output j:
+
+    - ``z̃ = fl(W h̃ + b)`` is within ``γ_{k+1}(|W||h̃| + |b|)`` of ``W h̃ + b`` in any summation
+      order, FMA or not (Higham, *Accuracy and Stability of Numerical Algorithms*, (3.5)), and
+      ``|W h̃ − W h| ≤ |W| d``; by Cauchy–Schwarz ``e_j = ‖W_j‖₂·a + γ_{k+1}|b_j|`` bounds
+      ``|z̃_j − z_j|``;
+    - ``|R(z) − z| ≤ u₃₂|z| + 2⁻¹⁵⁰`` (u₃₂ = 2⁻²⁴; 2⁻¹⁵⁰ in float32's subnormal range) while
+      R(z) is finite, so ``err = (1 + u₃₂)e + u₃₂|z̃| + 2⁻¹⁴⁹`` bounds ``|z̃ − R(z)|`` (the spare
+      2⁻¹⁵⁰ covers float64 underflow, below 2⁻¹⁰⁰⁰);
+    - relu is 1-Lipschitz: ``|relu(z̃_j) − relu(R(z_j))| ≤ err_j``, and where ``z̃_j < 0`` it is
+      at most ``relu(z̃_j + err_j) ≤ (1 + u₃₂)e_j + 2⁻¹⁴⁹``; so
+      ``d_j ≤ (1 + u₃₂)e_j + 2⁻¹⁴⁹ + u₃₂·relu(z̃_j)`` and, by the triangle inequality, the next
+      ``D = a·‖(1 + u₃₂)‖W_j‖₂‖₂ + ‖(1 + u₃₂)γ_{k+1}|b_j| + 2⁻¹⁴⁹‖₂ + u₃₂‖relu(z̃)‖₂``, norms
+      over j: per row a few scalars, no second matrix product and no per-entry bound;
+    - R(z) overflows only where ``z ≥ 2¹²⁸(1 − 2⁻²⁵)``; every z_j is below ``‖relu(z̃)‖₂ + D``,
+      so rows where that reaches 2¹²⁷ are left undecided (D = ∞).
+
+    At the outputs, where ``|z̃| + err < 2¹²⁷`` (q finite), ``|z̃ − q| ≤ err``: if
+    ``z̃_a − err_a > z̃_b + err_b`` for every ``b ≠ a``, then ``q_a > q_b`` strictly, so a is
+    the exact argmax (tied outputs never pass). The bounds are themselves float64 sums, products
+    and square roots of non-negative terms, at most 2(k + m) + 32 roundings deep, each losing at
+    most a factor (1 − u): each term carries a factor ``μ = 1 + γ_{4(k+m)+64}`` that makes the
+    computed value an upper bound again (the thresholds 2¹²⁷, half the overflow, need none).
+    Comparisons need no margin: rounding is monotonic, so ``fl(x) > fl(y)`` implies ``x > y``;
+    a NaN compares false. A row's verdict may depend on the BLAS kernel, its decided action
+    never does.
+    """
+
+    def __init__(self, layers: Sequence[Affine]) -> None:
+        self.layers = [_BoundedLayer.of(layer) for layer in layers]
+
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For float32 inputs (n, k): the argmax of each row's outputs (n,) int64, and the rows
+        where it is certainly the exact outputs' argmax (n,) bool. The others need those."""
+        h = np.asarray(x, np.float32).astype(np.float64)
+        norm, bound = _row_norms(h), np.zeros(len(h))  # ‖h̃‖₂ and D per row
+        for layer in self.layers[:-1]:
+            a = layer.gamma * norm + bound
+            h = h @ layer.w_t
+            h += layer.b
+            np.maximum(h, 0.0, out=h)
+            norm = _row_norms(h)
+            bound = a * layer.scale_norm + layer.offset_norm + layer.slope * norm
+            bound[~(norm + bound < 2.0**127)] = np.inf
+        last = self.layers[-1]
+        z = h @ last.w_t
+        z += last.b
+        a = last.gamma * norm + bound
+        err = np.multiply.outer(a, last.scale) + last.offset + last.slope * np.abs(z)
+        err[~(np.abs(z) + err < 2.0**127)] = np.inf
+        rows = np.arange(len(z))
+        action = z.argmax(axis=1)
+        lowest = z[rows, action] - err[rows, action]
+        rival = z + err
+        rival[rows, action] = -np.inf
+        return action, lowest > rival.max(axis=1, initial=-np.inf)
+
+
+class _BoundedLayer(NamedTuple):
+    """One layer of `ReluArgmax`: its `Affine`'s Wᵀ (k, m) and b (m,) in float64, γ_{k+1}, and
+    the terms of its bounds, each with the factor μ: err's ``scale`` (× a) and ``offset`` per
+    output and ``slope`` (× |z̃|); D's ``scale_norm`` and ``offset_norm``, their norms over
+    the outputs."""
+
+    w_t: np.ndarray
+    b: np.ndarray
+    gamma: float
+    scale: np.ndarray
+    offset: np.ndarray
+    slope: float
+    scale_norm: float
+    offset_norm: float
+
+    @classmethod
+    def of(cls, layer: Affine) -> _BoundedLayer:
+        (k, m), gamma = layer.w_t.shape, layer.gamma
+        mu = 1.0 + _gamma(4 * (k + m) + 64)
+        rounded = (1.0 + _FLOAT32_UNIT) * mu
+        scale = layer.norms * rounded
+        offset = gamma * layer.abs_b * rounded + 2.0**-149
+        scale_norm = float(np.sqrt(np.square(scale).sum()) * mu)
+        offset_norm = float(np.sqrt(np.square(offset).sum()) * mu)
+        return cls(
+            layer.w_t, layer.b, gamma, scale, offset, _FLOAT32_UNIT * mu, scale_norm, offset_norm
+        )
+
+
+def _row_norms(a: np.ndarray) -> np.ndarray:
+    """The Euclidean norm of each row of a float64 matrix (n, k)."""
+    return np.sqrt(np.einsum("ij,ij->i", a, a))
 
 
 def tanh(x: np.ndarray) -> np.ndarray:

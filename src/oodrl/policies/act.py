@@ -1,8 +1,10 @@
 """Policies that act in numpy with machine-independent arithmetic (SPEC §14).
 
-Collection calls ``act`` once per block step; every layer is :func:`oodrl.numerics.linear`, so
-the same weights and observations give the same actions on every x86-64 machine, whatever kernel
-its BLAS picks. Torch is needed only to read a checkpoint, never to act.
+Collection calls ``act`` once per block step; every layer is correctly rounded
+(:class:`oodrl.numerics.Affine`, :func:`oodrl.numerics.linear`'s bits), so the same weights and
+observations give the same actions on every x86-64 machine, whatever kernel its BLAS picks (a
+greedy ReLU argmax head gets the same actions faster: :class:`oodrl.numerics.ReluArgmax`).
+Torch is needed only to read a checkpoint, never to act.
 
 Architectures (the ``kind`` of a checkpoint's ``architecture`` mapping):
 
@@ -22,6 +24,7 @@ statistics), applied to each observation first, in float64 as VecNormalize does.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -75,18 +78,31 @@ class LayeredPolicy:
         self, observations: np.ndarray, rngs: Sequence[np.random.Generator] | None = None
     ) -> np.ndarray:
         """The last layer's outputs (n, action_size) float32, before any argmax or squashing."""
-        x = np.asarray(observations, dtype=np.float32).reshape(-1, self.state_dim)
-        if self.normalization is not None:
-            x = self._normalized(x)
+        x = self._inputs(observations)
         noise = self._row_noise(rngs, len(x)) if self.mode == "noisy" else None
         last = len(self.layers) - 1
-        for i, layer in enumerate(self.layers):
-            y = numerics.linear(x, layer.weight, layer.bias)
+        for i, (layer, affine) in enumerate(zip(self.layers, self._affine, strict=True)):
+            y = affine(x)
             if noise is not None:
                 eps_in, eps_out = noise[i]
                 y = y + eps_out * numerics.linear(x * eps_in, layer.weight_sigma, layer.bias_sigma)
             x = self.activation(y) if i < last else y
         return x
+
+    @functools.cached_property
+    def _affine(self) -> list[numerics.Affine]:
+        """The layers' mean weights, prepared once for the many small batches of a rollout."""
+        return [numerics.Affine(layer.weight, layer.bias) for layer in self.layers]
+
+    def __getstate__(self) -> dict[str, Any]:
+        """The policy without what `functools.cached_property` prepared: derived from the
+        weights, it would only change the bytes of a pickle (a fitted detector) that holds it."""
+        return {k: v for k, v in self.__dict__.items() if k not in _PREPARED}
+
+    def _inputs(self, observations: np.ndarray) -> np.ndarray:
+        """The network's input rows (n, state_dim) float32: the observations, normalised."""
+        x = np.asarray(observations, dtype=np.float32).reshape(-1, self.state_dim)
+        return x if self.normalization is None else self._normalized(x)
 
     def _normalized(self, x: np.ndarray) -> np.ndarray:
         """VecNormalize's ``clip((obs − mean) / √(var + ε), ±clip)``: elementwise float64 IEEE
@@ -117,14 +133,45 @@ class LayeredPolicy:
 
 
 class ArgmaxPolicy(LayeredPolicy):
-    """Acts by the argmax of its outputs: actions (n,) int64."""
+    """Acts by the argmax of its outputs: actions (n,) int64.
+
+    Only the argmax is acted on and recorded, so a greedy ReLU network need not round every
+    output exactly: `numerics.ReluArgmax` decides most rows in plain float64, and only the rows
+    whose top two outputs lie within its error bound take the exact outputs (`exact_act`), with
+    the same answer.
+    """
 
     action_kind = "discrete"
 
     def act(
         self, observations: np.ndarray, rngs: Sequence[np.random.Generator] | None = None
     ) -> np.ndarray:
+        if self._certified_argmax is None:
+            return self.exact_act(observations, rngs)
+        observations = np.asarray(observations, dtype=np.float32).reshape(-1, self.state_dim)
+        actions, decided = self._certified_argmax(self._inputs(observations))
+        undecided = ~decided
+        if undecided.any():
+            actions[undecided] = self.exact_act(observations[undecided])
+        return actions
+
+    def exact_act(
+        self, observations: np.ndarray, rngs: Sequence[np.random.Generator] | None = None
+    ) -> np.ndarray:
+        """The argmax of the exactly rounded outputs: `act`'s answer, computed the slow way."""
         return self.outputs(observations, rngs).argmax(axis=1).astype(np.int64)
+
+    @functools.cached_property
+    def _certified_argmax(self) -> numerics.ReluArgmax | None:
+        """The float64 network with its error bound; None where its analysis does not apply
+        (NoisyNet noise in `noisy` mode, tanh activations)."""
+        if self.mode == "noisy" or self.activation is not numerics.relu:
+            return None
+        return numerics.ReluArgmax(self._affine)
+
+
+#: The attributes `LayeredPolicy.__getstate__` leaves out.
+_PREPARED = ("_affine", "_certified_argmax")
 
 
 class TanhActorPolicy(LayeredPolicy):
