@@ -8,12 +8,14 @@ from oodrl import yamlio
 from oodrl.core.adapter import EnvironmentAdapter, SimulatorHandle
 from oodrl.errors import ContractError
 from oodrl.impact import (
+    AT_MOST,
     BEYOND_RANGE,
     LEVELS,
     UNREACHABLE,
     Returns,
     calibrate_impact,
     impact_record,
+    impact_text,
     minimum_detectable_impact,
 )
 from oodrl.injectors.online import DynamicsScaling
@@ -175,6 +177,24 @@ def test_minimum_detectable_impact_interpolates_on_the_impact_curve():
     assert minimum_detectable_impact([0.0, 0.2], [1.0, 0.9], [0.1, 0.4], [0.5, 0.95]) == (
         BEYOND_RANGE
     )
+
+
+def test_an_mdi_at_the_first_tier_prints_as_a_bound():
+    """SPEC §19: reached already at the first measured tier, the loss there only bounds the
+    minimum detectable impact: `{at_most: 0.05}`, printed "≤ 5.0%" (a loss of ≤ 0.05)."""
+    xs, ys = [0.0, 0.2, 0.35, 0.7], [1.0, 0.95, 0.9, 0.75]  # mild, moderate, severe
+    tiers = [0.2, 0.35, 0.7]
+    bound = minimum_detectable_impact(xs, ys, tiers, [0.93, 0.97, 1.0])
+    assert bound == {AT_MOST: 0.05}
+    assert impact_text(bound) == "≤ 5.0%"
+    # Reached at the second tier: a value, interpolated as before.
+    assert minimum_detectable_impact(xs, ys, tiers, [0.5, 0.9, 1.0]) == pytest.approx(0.1)
+    assert impact_text(0.1) == "10.0%" and impact_text(BEYOND_RANGE) == BEYOND_RANGE
+    # A stepped fault reaching it at its first measured severity: its step's loss, a bound.
+    stepped = minimum_detectable_impact(
+        [0.0, *STEPPED], [1.0, *STEPPED.values()], [0.1, 0.4], [0.95, 0.99], steps=4
+    )
+    assert stepped == {AT_MOST: pytest.approx(0.03)}
 
 
 def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(

@@ -46,3 +46,25 @@ def test_per_stream_detection_counts_only_first_alarms_within_k_of_the_onset():
     detected = _per_stream_detections(scores, threshold=1.0, onset=4, k=3, latency=1)
     assert detected.tolist() == [1.0, 0.0, 0.0, 0.0, 1.0]
     assert detection_metric(3) == "detection_rate@3"
+
+
+def test_a_tier_table_cell_with_fewer_than_5_detections_prints_no_delay():
+    from oodrl.metrics.tiers import tier_tables
+
+    few = {"median": None, "p90": None, "n_detected": 3}
+    enough = {"median": 12.0, "p90": 20.0, "n_detected": 40}
+    records = [
+        {"detector": name, "injector": "stuck_actuator", "tier": "mild", "severity": 0.2,
+         "metrics": {"matched_auroc": {"mean": 0.8}},
+         "operating_point": {"detection_rate": 0.2, "detection_rate_ci": [0.0, 0.5],
+                             "delay": delay}}
+        for name, delay in (("a", few), ("b", enough))
+    ]  # fmt: skip
+    impact = {
+        "env_id": "Toy-v0", "n_episodes": 30, "levels": {"mild": 0.95},
+        "faults": {"stuck_actuator": {"curve": [{"normalised": 0.9, "severity": 1.0}],
+                                      "tiers": {"mild": {"severity": 0.2, "ci": [0.1, 0.3]}}}},
+    }  # fmt: skip
+    text = tier_tables({"k": 100, "alpha": 0.05, "records": records}, impact)
+    assert "| a | stuck_actuator | 0.200 | 0.20 [0.00, 0.50] | — (n = 3) | 0.800 |" in text
+    assert "| b | stuck_actuator | 0.200 | 0.20 [0.00, 0.50] | 12 (n = 40) | 0.800 |" in text

@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from oodrl.config import POLICY_SEED_OFFSET, RANDOM_SEED_OFFSET
 from oodrl.core.adapter import EnvironmentAdapter
 from oodrl.core.injector import OnlineInjector
 from oodrl.core.policy import Policy
@@ -64,8 +65,9 @@ LEVELS = {"mild": 0.95, "moderate": 0.90, "severe": 0.75}
 SEVERE_FLOOR = 0.5
 UNREACHABLE = "unreachable"
 BEYOND_RANGE = "beyond range"
-POLICY_SEED_OFFSET = 500_000
-RANDOM_SEED_OFFSET = 600_000
+#: A minimum detectable impact already reached at the first measured severity is a bound, not a
+#: value (SPEC §19): `{AT_MOST: loss there}`, shown "≤ loss".
+AT_MOST = "at_most"
 
 
 class UniformRandomPolicy:
@@ -351,7 +353,7 @@ def minimum_detectable_impact(
     metric_values: Sequence[float],
     target: float = 0.9,
     steps: int | None = None,
-) -> float | str:
+) -> float | str | dict[str, float]:
     """The smallest return loss 1 − R̃ at which a detection metric (matched AUROC, or
     detection_rate@K) reaches `target` (SPEC §15), or "beyond range".
 
@@ -361,19 +363,29 @@ def minimum_detectable_impact(
     target, or reaches it above the impact grid's largest severity. A stepped fault (`steps`,
     one impact point per step) is read without interpolating: the first metric severity that
     reaches the target, and the impact of its step ⌈σ·n⌉, as the injector computes it.
+    Reached already at the first metric severity, the loss there only bounds it from above
+    (SPEC §19): `{AT_MOST: loss}`.
     """
     if steps is not None:
         reached = [s for s, v in zip(metric_severities, metric_values, strict=True) if v >= target]
         if not reached or reached[0] > 1:
             return BEYOND_RANGE
-        step = math.ceil(reached[0] * steps)
-        return round(1.0 - float(impact_monotone[step]), 6) + 0.0
-    severity = first_rise(metric_severities, metric_values, target)
-    xs = np.asarray(impact_severities, dtype=np.float64)
-    if severity is None or severity > xs[-1]:
-        return BEYOND_RANGE
-    loss = 1.0 - float(np.interp(severity, xs, np.asarray(impact_monotone, dtype=np.float64)))
-    return round(loss, 6) + 0.0
+        loss = 1.0 - float(impact_monotone[math.ceil(reached[0] * steps)])
+    else:
+        severity = first_rise(metric_severities, metric_values, target)
+        xs = np.asarray(impact_severities, dtype=np.float64)
+        if severity is None or severity > xs[-1]:
+            return BEYOND_RANGE
+        loss = 1.0 - float(np.interp(severity, xs, np.asarray(impact_monotone, dtype=np.float64)))
+    loss = round(loss, 6) + 0.0
+    return {AT_MOST: loss} if metric_values[0] >= target else loss
+
+
+def impact_text(value: float | str | dict[str, float]) -> str:
+    """A minimum-detectable-impact cell: "3.1%", "≤ 5.0%" (a bound) or "beyond range"."""
+    if isinstance(value, dict):
+        return f"≤ {100 * float(value[AT_MOST]):.1f}%"
+    return value if isinstance(value, str) else f"{100 * float(value):.1f}%"
 
 
 def impact_curve_points(record: Mapping[str, Any]) -> tuple[list[float], list[float]]:

@@ -46,7 +46,7 @@ from oodrl.core.injector import Fault
 from oodrl.core.spec import default_onset
 from oodrl.core.stream import StepScore
 from oodrl.errors import ConfigError, NotFittedError, StoreError
-from oodrl.metrics.operating import DEFAULT_ALPHA, OperatingPoint
+from oodrl.metrics.operating import DEFAULT_ALPHA, MIN_DELAY_COUNT, OperatingPoint
 
 #: `on_alarm(record)`: called once for every alarmed step score.
 AlarmCallback = Callable[[StepScore], None]
@@ -397,9 +397,10 @@ class EpisodesSummary:
         delay = record["delay"]
         delays = (
             f"delay median {delay['median']:g}, p90 {delay['p90']:g} steps "
-            f"({delay['n_detected']} streams alarmed after the onset)"
-            if delay["n_detected"]
-            else "no alarm after the onset"
+            f"({delay['n_detected']} streams detected within K)"
+            if delay["median"] is not None
+            else f"delays not shown ({delay['n_detected']} streams detected within K, "
+            f"fewer than {MIN_DELAY_COUNT})"
         )
         p = self.point
         return [
@@ -488,16 +489,16 @@ def _operating_point(
     from oodrl.metrics.operating import detection_rate
 
     never = np.iinfo(np.int64).max
-    after = (raised >= onset) & (raised < never)
+    detected = (raised >= onset) & (raised <= onset + k)
     nominal = detector.alpha if detector.threshold_rule == "episode_max" else alpha
     return OperatingPoint(
         alpha=float(nominal),
         threshold=float(detector.threshold_),
         k=k,
         n_faulty=len(raised),
-        detected=int(np.sum(after & (raised <= onset + k))),
+        detected=int(np.sum(detected)),
         early_false_alarms=int(np.sum(raised < onset)),
-        delays=tuple(int(d) for d in raised[after] - onset),
+        delays=tuple(int(d) for d in raised[detected] - onset),
         curve={kk: detection_rate(raised, onset, kk, never) for kk in range(0, k + 1, 10)},
         n_clean=len(clean_alarms),
         clean_false_alarms=int(np.sum(clean_alarms)),

@@ -6,6 +6,7 @@ from oodrl.errors import ConfigError
 from oodrl.metrics.operating import (
     clopper_pearson,
     conformal_threshold,
+    delay_text,
     first_raise,
     min_alpha,
     min_calibration_streams,
@@ -33,8 +34,10 @@ def test_detection_rate_at_k_matches_the_hand_worked_example():
     record = point.as_dict()
     assert record["detection_rate"] == pytest.approx(1 / 5)
     assert record["early_false_alarm_rate"] == pytest.approx(2 / 5)
-    assert point.delays == (1, 4)
-    assert record["delay"]["median"] == pytest.approx(2.5)
+    # Delays only from the streams detected within K (SPEC §19): s2's raise at 8 is no delay.
+    assert point.delays == (1,)
+    # One detected stream: its count is kept, its median not shown (fewer than 5).
+    assert record["delay"] == {"median": None, "p90": None, "n_detected": 1}
     assert record["detection_curve"] == {0: 0.0, 1: 0.2, 2: 0.2, 4: 0.4, 5: 0.4}
     assert record["clean_false_alarm_rate"] == pytest.approx(1 / 4)
     # Latency 1 (the score of t needs s_{t+1}): raises 6, 3, 9, none, 4. s4's alarm at step 3 is
@@ -42,7 +45,21 @@ def test_detection_rate_at_k_matches_the_hand_worked_example():
     late = operating_point(hand_worked_scores(), clean, 1.0, ONSET, k=2, latency=1)
     assert late.detection_rate == pytest.approx(2 / 5)
     assert late.early_false_alarms == 1
-    assert late.delays == (2, 5, 0)
+    assert late.delays == (2, 0)
+
+
+def test_a_cell_with_fewer_than_5_detections_prints_no_delay():
+    """SPEC §19: delays only from streams detected within K, with their count, not shown
+    below 5. Streams first alarm at 4 + j (j = 0..5); K = 3 detects four of them."""
+    scores = np.zeros((6, T))
+    for j in range(6):
+        scores[j, ONSET + j] = 2.0
+    few = operating_point(scores, scores[:0], 1.0, ONSET, k=3).as_dict()["delay"]
+    assert few == {"median": None, "p90": None, "n_detected": 4}
+    assert delay_text(few) == "— (n = 4)"
+    enough = operating_point(scores, scores[:0], 1.0, ONSET, k=4).as_dict()["delay"]
+    assert enough == {"median": 2.0, "p90": 3.6, "n_detected": 5}
+    assert delay_text(enough) == "2 (n = 5)"
 
 
 def test_an_alarm_raised_beyond_the_stream_is_no_alarm():

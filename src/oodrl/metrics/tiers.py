@@ -4,9 +4,11 @@ stage's results, `reports/tier_results.yaml` (the stages that feed it: `oodrl.ti
 Per (detector, fault, tier) a record holds every metric of SPEC §6 against the matched clean
 evaluation streams (per-episode matched AUROC kept for the leaderboard), and the operating
 point of the per-stream conformal rule (`oodrl.metrics.operating`): its threshold is computed
-from the detector's scores on the calibration streams at `tiers.alpha`; `detection_rate@K` per
-stream (kept per episode too), the delays, the detection-rate curve, and the clean false-alarm
-rate achieved on the evaluation streams. Per detector × fault, the minimum detectable impact:
+from the detector's scores on the calibration streams at `tiers.alpha` by `tiers.threshold_rule`
+(marginal `episode_max`, or training-conditional `episode_max_conditional` at `tiers.delta`);
+`detection_rate@K` per stream (kept per episode too), the delays of the streams detected within
+K (shown from 5 on), the detection-rate curve, and the clean false-alarm rate achieved on the
+evaluation streams. Per detector × fault, the minimum detectable impact:
 the smallest return loss at which matched AUROC, and `detection_rate@K`, reach 0.9 on the tiers
 (the metric linear between the tiers' severities, the loss read on the monotone impact curve).
 """
@@ -55,8 +57,8 @@ def _rounded(values) -> list[float]:
 def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detector: str):
     """One detector's records at every fault's reachable tiers."""
     from oodrl.metrics.aggregate import episode_metrics, summarise
-    from oodrl.metrics.operating import conformal_threshold
     from oodrl.metrics.operating import operating_point as operating
+    from oodrl.metrics.operating import per_stream_threshold
 
     tiers = params.tiers
     latency = params.detector(detector).latency
@@ -68,9 +70,10 @@ def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detect
         calibration_score_store(scores_dir, detector),
         stage=detector_stage(detector, "score_clean"),
     )
-    # The per-stream rule: the conformal quantile of the calibration streams' maxima.
+    # The per-stream rule (`tiers.threshold_rule`): an order statistic of the calibration
+    # streams' maxima, marginal or training-conditional.
     maxima = calibration_groups[CLEAN_GROUP]["scores"].max(axis=1)
-    threshold = conformal_threshold(maxima, tiers.alpha)
+    threshold = per_stream_threshold(maxima, tiers.alpha, tiers.threshold_rule, tiers.delta)
     records = []
     for fault in params.benchmark.injectors:
         groups, attrs = read_scores(
@@ -109,14 +112,14 @@ def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detect
 
 def _minimum_detectable_impact(
     records: list[dict], impacts: Mapping[str, dict], k: int
-) -> dict[str, dict[str, dict[str, float | str]]]:
+) -> dict[str, dict[str, dict[str, float | str | dict[str, float]]]]:
     """detector -> fault -> {criterion: the return loss 1 − R̃ at which it reaches 0.9}."""
     from oodrl.impact import BEYOND_RANGE, impact_curve_points, minimum_detectable_impact
 
     by_cell: dict[tuple[str, str], list[dict]] = {}
     for record in records:
         by_cell.setdefault((record["detector"], record["injector"]), []).append(record)
-    table: dict[str, dict[str, dict[str, float | str]]] = {}
+    table: dict[str, dict[str, dict[str, float | str | dict[str, float]]]] = {}
     for (detector, fault), cell in sorted(by_cell.items()):
         xs, ys = impact_curve_points(impacts[fault]["fault"])
         steps = impacts[fault]["fault"].get("severity_steps")
@@ -133,6 +136,20 @@ def _minimum_detectable_impact(
             for name, values in criteria.items()
         }
     return table
+
+
+def _impact_summary(document: Mapping[str, Any]) -> dict[str, Any]:
+    """A fault's impact record as tier results carry it: the returns, the tiers and the curve
+    (the leaderboard page draws it with each tier's severity, SPEC §21)."""
+    fault = document["fault"]
+    steps = {"severity_steps": fault["severity_steps"]} if fault.get("severity_steps") else {}
+    return {
+        "clean_return": document["clean_return"],
+        "random_return": document["random_return"],
+        "tiers": fault["tiers"],
+        "curve": fault["curve"],
+        **steps,
+    }
 
 
 def compute_tier_results(params: Params, scores_dir: Path, impact_dir: Path) -> dict[str, Any]:
@@ -153,14 +170,7 @@ def compute_tier_results(params: Params, scores_dir: Path, impact_dir: Path) -> 
         "alpha": params.tiers.alpha,
         "k": params.tiers.k,
         "records": records,
-        "impact": {
-            fault: {
-                "clean_return": doc["clean_return"],
-                "random_return": doc["random_return"],
-                "tiers": doc["fault"]["tiers"],
-            }
-            for fault, doc in impacts.items()
-        },
+        "impact": {fault: _impact_summary(doc) for fault, doc in impacts.items()},
         "minimum_detectable_impact": _minimum_detectable_impact(records, impacts, params.tiers.k),
     }
 
@@ -176,7 +186,9 @@ def impact_document(params: Params, impact_dir: Path) -> dict[str, Any]:
 
 def tier_tables(document: Mapping[str, Any], impact: Mapping[str, Any]) -> str:
     """Markdown: the tiers' severities per fault, then per tier the detection rate at α
-    (with its CI), the median delay and the matched AUROC of every (detector, fault)."""
+    (with its CI), the median delay of the streams detected within K with their count ("—"
+    below 5) and the matched AUROC of every (detector, fault)."""
+    from oodrl.metrics.operating import delay_text
     from oodrl.report.impact import impact_table
 
     k, alpha = document["k"], document["alpha"]
@@ -193,17 +205,16 @@ def tier_tables(document: Mapping[str, Any], impact: Mapping[str, Any]) -> str:
         lines += [
             f"## {tier}: detection_rate@{k} at α = {alpha:g} [95% CI], median delay, matched AUROC",
             "",
-            "| detector | fault | σ | detection rate | median delay | matched AUROC |",
+            "| detector | fault | σ | detection rate | median delay (n detected) | matched AUROC |",
             "|---|---|---:|---:|---:|---:|",
         ]
         for r in rows:
             point = r["operating_point"]
             low, high = point["detection_rate_ci"]
-            delay = point["delay"]["median"]
             lines.append(
                 f"| {r['detector']} | {r['injector']} | {r['severity']:.3f} | "
                 f"{point['detection_rate']:.2f} [{low:.2f}, {high:.2f}] | "
-                f"{'—' if delay is None else f'{delay:g}'} | "
+                f"{delay_text(point['delay'])} | "
                 f"{r['metrics']['matched_auroc']['mean']:.3f} |"
             )
         lines.append("")
