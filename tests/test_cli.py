@@ -25,9 +25,11 @@ def test_list_shows_every_component_kind():
             sections[current] = []
         else:
             sections[current].append(line.split()[0])
-    assert len(sections["detectors"]) == 8
+    # The paper's eight (SPEC §5), then SPEC §20's: four on the policy view, fqe_td, riqn,
+    # conformal_martingale, deedee and random_scores.
+    assert len(sections["detectors"]) == 17
     assert len(sections["injectors"]) == 14  # the nine of SPEC §4 and five live observation faults
-    assert "matched_auroc" in sections["metrics"]
+    assert {"matched_auroc", "vus_pr"} <= set(sections["metrics"])
     assert "LunarLander-v3" in sections["environments"]  # the suite adds more (SPEC §11)
     # Online: four of SPEC §4 and the five live observation faults.
     assert result.output.count("(online)") == 9 and result.output.count("(posthoc)") == 5

@@ -1,5 +1,5 @@
 """The package's import graph: no cycles, and the contracts in `oodrl.core` import nothing above
-them (only each other, `oodrl.errors` and `oodrl.validation`).
+them (only each other, `oodrl.errors`, `oodrl.validation` and `oodrl.numerics`).
 
 Every import counts, wherever it sits: module level, inside a function, or under
 `TYPE_CHECKING`. An in-function import hides a cycle from Python but not from a reader.
@@ -13,8 +13,9 @@ from pathlib import Path
 import oodrl
 
 PACKAGE = Path(oodrl.__file__).parent
-#: What a contract in oodrl.core may import besides oodrl.core itself.
-BELOW_CORE = {"oodrl.errors", "oodrl.validation"}
+#: What a contract in oodrl.core may import besides oodrl.core itself: the errors, the parameter
+#: checks, and the machine-independent arithmetic (numpy only; a threshold rule computes with it).
+BELOW_CORE = {"oodrl.errors", "oodrl.validation", "oodrl.numerics"}
 
 
 def module_name(path: Path) -> str:

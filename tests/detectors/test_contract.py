@@ -6,7 +6,9 @@ from __future__ import annotations
 import copy
 import subprocess
 import sys
+import tempfile
 from functools import cache
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,8 +28,10 @@ from oodrl.testing import (
     check_state_dim,
     check_threshold,
     check_torch_free_import,
+    linear_system_policy,
     linear_system_trajectories,
 )
+from oodrl.validation import constructor_params
 
 NAMES = DETECTORS.names()
 
@@ -39,6 +43,8 @@ SMALL: dict[str, dict] = {
     "kde_density": {"max_reference": 200},
     "lyapunov_divergence": {"max_reference": 300},
     "time_series_features": {"window": 16},
+    "riqn": {"hidden_size": 8, "n_cos": 4, "n_quantiles": 2, "epochs": 1, "chunk_length": 40},
+    "fqe_td": {"n_members": 2, "hidden_sizes": [16], "iterations": 3},
 }
 
 DATA = linear_system_trajectories(10, T=120, episode_length=80, seed=0)
@@ -53,14 +59,40 @@ SPLITS = {
 }
 ACTIONS = list(SPLITS)
 
+#: The policy that made each kind's data (`linear_system_policy`), for detectors that read the
+#: agent's policy (a `policy` parameter): files of this module's lifetime.
+_POLICY_DIR = tempfile.TemporaryDirectory(prefix="oodrl-contract-policies-")
+POLICIES = {
+    actions: str(linear_system_policy(Path(_POLICY_DIR.name) / f"{actions}.pt", **kind))
+    for actions, kind in {"discrete": {}, "continuous": {"action_dim": 2}}.items()
+}
 
-def make(name: str) -> BaseDetector:
-    return DETECTORS.get(name)(**SMALL.get(name, {}))
+
+@cache
+def refusal(name: str, actions: str) -> str | None:
+    """Why a detector refuses the policy of one action kind's data (None: it reads it)."""
+    support = getattr(DETECTORS.get(name), "policy_support", None)
+    if support is None:
+        return None
+    from oodrl.policies.load import load_policy
+
+    return support(load_policy(POLICIES[actions]))
+
+
+def make(name: str, actions: str = "discrete") -> BaseDetector:
+    """A small detector for one action kind's data; a test skips where the detector refuses it."""
+    reason = refusal(name, actions)
+    if reason is not None:
+        pytest.skip(f"{name} refuses the {actions} data's policy: {reason}")
+    params = dict(SMALL.get(name, {}))
+    if "policy" in constructor_params(DETECTORS.get(name)):
+        params["policy"] = POLICIES[actions]
+    return DETECTORS.get(name)(**params)
 
 
 @cache
 def _fitted(name: str, actions: str) -> BaseDetector:
-    return make(name).fit(SPLITS[actions][0])
+    return make(name, actions).fit(SPLITS[actions][0])
 
 
 def by_name_and_actions(test):
@@ -110,7 +142,7 @@ def test_not_fitted(name):
 @by_name_and_actions
 def test_fresh_fits(name, actions, check):
     fit, _, evaluation = SPLITS[actions]
-    check(lambda: make(name), fit, evaluation)
+    check(lambda: make(name, actions), fit, evaluation)
 
 
 @pytest.mark.parametrize(

@@ -1,6 +1,8 @@
 """No built-in detector imports torch (each DVC stage is a fresh process; torch costs ~1.5 s).
 
-The neural detectors train and score their networks in numpy (`oodrl.detectors.mlp`).
+The neural detectors train and score their networks in numpy (`oodrl.detectors.mlp`). Those that
+read the agent's policy (`uses_torch`) import torch to read its checkpoint when they fit, and
+score without it.
 """
 
 from __future__ import annotations
@@ -10,10 +12,12 @@ import subprocess
 import sys
 
 import pytest
+from test_contract import POLICIES
 
 from oodrl.detectors import DETECTORS
 from oodrl.detectors.neural import NeuralDetector
 from oodrl.testing import linear_system_trajectories
+from oodrl.validation import constructor_params
 
 NAMES = DETECTORS.names()
 
@@ -36,17 +40,22 @@ def test_building_every_detector_imports_neither_torch_nor_scipy():
 #: Small neural detectors so that fitting takes a fraction of a second.
 SMALL = {"hidden_sizes": [8], "epochs": 1}
 NEURAL = [n for n in NAMES if issubclass(DETECTORS.get(n), NeuralDetector)]
+#: Those whose fitting does not read a policy checkpoint.
+TORCH_FREE_FIT = [n for n in NEURAL if not DETECTORS.get(n).uses_torch]
 
 
 def small(name: str):
-    return DETECTORS.get(name)(**(SMALL if name in NEURAL else {}))
+    params = dict(SMALL if name in NEURAL else {})
+    if "policy" in constructor_params(DETECTORS.get(name)):
+        params["policy"] = POLICIES["discrete"]  # the policy of the data
+    return DETECTORS.get(name)(**params)
 
 
 def test_the_neural_detectors_are_found():
-    assert set(NEURAL) >= {"pedm", "autoencoder", "ensemble_disagreement"}
+    assert set(TORCH_FREE_FIT) >= {"pedm", "autoencoder", "ensemble_disagreement"}
 
 
-@pytest.mark.parametrize("name", NEURAL, ids=NEURAL)
+@pytest.mark.parametrize("name", TORCH_FREE_FIT, ids=TORCH_FREE_FIT)
 def test_fitting_a_neural_detector_does_not_import_torch(name):
     code = (
         "import pickle, sys; detector = pickle.load(sys.stdin.buffer); "

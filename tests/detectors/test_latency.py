@@ -13,11 +13,13 @@ from functools import cache
 
 import numpy as np
 import pytest
+from test_contract import POLICIES
 
 from oodrl.core.detector import BaseDetector
 from oodrl.core.trajectory import Trajectory
 from oodrl.detectors import DETECTORS
 from oodrl.testing import linear_system_trajectories
+from oodrl.validation import constructor_params
 
 #: Small models so that the file runs in seconds; and every look-ahead the params can choose.
 VARIANTS: dict[str, dict] = {
@@ -39,6 +41,17 @@ VARIANTS: dict[str, dict] = {
     "kde_density-transition": {"features": "transition", "max_reference": 200},
     "lyapunov_divergence": {"max_reference": 300},
     "lyapunov_divergence-horizon-3": {"max_reference": 300, "horizon": 3},
+    "riqn": {"hidden_size": 8, "n_cos": 4, "n_quantiles": 2, "epochs": 1, "chunk_length": 40},
+    "conformal_martingale": {},
+    "conformal_martingale-transition": {"base_params": {"features": "transition"}},
+    "deedee": {},
+    "deedee-transition": {"features": "transition"},
+    "random_scores": {},
+    "q_margin": {},
+    "q_entropy": {},
+    "q_energy": {},
+    "max_softmax": {},
+    "fqe_td": {"n_members": 2, "hidden_sizes": [16], "iterations": 3},
 }
 
 EXPECTED_LATENCY = {
@@ -55,6 +68,17 @@ EXPECTED_LATENCY = {
     "kde_density-transition": 1,
     "lyapunov_divergence": 5,
     "lyapunov_divergence-horizon-3": 3,
+    "riqn": 1,
+    "conformal_martingale": 0,
+    "conformal_martingale-transition": 1,
+    "deedee": 0,
+    "deedee-transition": 1,
+    "random_scores": 0,
+    "q_margin": 0,
+    "q_entropy": 0,
+    "q_energy": 0,
+    "max_softmax": 0,
+    "fqe_td": 1,
 }
 
 DATA = linear_system_trajectories(8, T=120, episode_length=200, seed=0)
@@ -63,7 +87,10 @@ T0 = 70
 
 
 def make(variant: str) -> BaseDetector:
-    return DETECTORS.get(variant.split("-")[0])(**VARIANTS[variant])
+    cls = DETECTORS.get(variant.split("-")[0])
+    # Detectors that read the agent's policy read the one that made the data.
+    policy = {"policy": POLICIES["discrete"]} if "policy" in constructor_params(cls) else {}
+    return cls(**VARIANTS[variant], **policy)
 
 
 @cache

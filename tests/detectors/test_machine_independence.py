@@ -24,12 +24,15 @@ SELECTIONS: dict[str, dict[str, str]] = {
     "openblas-2-threads": {"OPENBLAS_NUM_THREADS": "2"},
 }
 
-#: Fits and scores every neural detector on tiny data; prints {name: [weights, scores]} digests.
+#: Fits and scores every neural detector, and one of the policy view, on tiny data; prints
+#: {name: [learned state, scores]} digests (the view learns its temperature).
 SCRIPT = """
-import hashlib, json, pickle
+import hashlib, json, pickle, tempfile
 import numpy as np
 from oodrl.detectors import DETECTORS
-from oodrl.testing import linear_system_trajectories
+from oodrl.testing import linear_system_policy, linear_system_trajectories
+
+policy = str(linear_system_policy(tempfile.mkdtemp() + "/policy.pt"))
 
 SMALL = {
     "pedm": {"n_members": 3, "n_samples": 4, "hidden_sizes": [16, 16], "epochs": 2,
@@ -37,6 +40,10 @@ SMALL = {
     "autoencoder": {"hidden_sizes": [16], "latent_dim": 2, "epochs": 2, "batch_size": 64},
     "ensemble_disagreement": {"n_members": 3, "hidden_sizes": [16, 16], "epochs": 2,
                               "batch_size": 64},
+    "fqe_td": {"policy": policy, "n_members": 3, "hidden_sizes": [16], "iterations": 3,
+               "batch_size": 64},
+    "q_entropy": {"policy": policy},
+    "riqn": {"hidden_size": 8, "n_cos": 4, "n_quantiles": 2, "epochs": 2, "chunk_length": 40},
 }
 fit = linear_system_trajectories(3, T=120, seed=0)
 scored = linear_system_trajectories(2, T=90, seed=1)
@@ -45,7 +52,8 @@ for name, params in SMALL.items():
     detector = DETECTORS.get(name)(**params).fit(fit)
     scores = np.concatenate([o.scores for o in detector.score_many(scored)])
     digests[name] = [
-        hashlib.sha256(pickle.dumps(detector.weights_)).hexdigest(),
+        hashlib.sha256(pickle.dumps(getattr(detector, "weights_", None)
+                                    or detector.temperature_)).hexdigest(),
         hashlib.sha256(scores.tobytes()).hexdigest(),
     ]
 print(json.dumps(digests))
@@ -89,5 +97,6 @@ def test_fits_and_scores_are_identical_under_every_kernel(selection, default_dig
     needed = NEEDS.get(selection)
     if needed and needed not in cpu_flags():
         pytest.skip(f"{selection}: this CPU lacks {needed}, so its kernels cannot run here")
-    assert set(default_digests) == {"pedm", "autoencoder", "ensemble_disagreement"}
+    neural = {"pedm", "autoencoder", "ensemble_disagreement", "fqe_td", "riqn"}
+    assert set(default_digests) == {*neural, "q_entropy"}
     assert digests(SELECTIONS[selection]) == default_digests

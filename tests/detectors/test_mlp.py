@@ -173,3 +173,26 @@ def test_training_is_seeded_and_reduces_the_loss(loss):
     else:  # The NLL is unbounded below: it must fall far, to well under zero.
         assert final < min(initial[0] - 3, -2)
     assert losses[-1] < losses[0]
+
+
+def test_each_member_may_train_on_its_own_targets():
+    rng = np.random.default_rng(0)
+    inputs = rng.standard_normal((60, 3))
+    targets = rng.standard_normal((60, 1))
+    settings = mlp.OptimiserSettings(epochs=3, batch_size=16, lr=1e-2)
+
+    def fit(member_targets: np.ndarray) -> mlp.EnsembleWeights:
+        generator = np.random.default_rng(1)
+        initial = mlp.init_weights(2, (3, 8, 1), generator)
+        indices = mlp.member_indices(2, 60, True, generator)
+        return mlp.train(initial, inputs, member_targets, mlp.mse, settings, indices, generator)[0]
+
+    shared = fit(targets)
+    # The same targets given to each member train the same bits as shared ones...
+    same = fit(np.stack([targets, targets]))
+    for a, b in zip((*shared.weights, *shared.biases), (*same.weights, *same.biases), strict=True):
+        assert a.tobytes() == b.tobytes()
+    # ...and a member's own targets change that member alone.
+    own = fit(np.stack([targets, targets + 1.0]))
+    np.testing.assert_array_equal(own.weights[0][0], shared.weights[0][0])
+    assert not np.array_equal(own.weights[0][1], shared.weights[0][1])

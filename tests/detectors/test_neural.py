@@ -11,6 +11,7 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 import torch
+from test_contract import POLICIES
 from torch import nn
 
 from oodrl.core.detector import BaseDetector
@@ -39,6 +40,7 @@ SMALL: dict[str, dict] = {
     "pedm": {"n_members": 3, "n_samples": 4, "hidden_sizes": [16, 16], "epochs": 5},
     "autoencoder": {"hidden_sizes": [16], "latent_dim": 2, "epochs": 5},
     "ensemble_disagreement": {"n_members": 3, "hidden_sizes": [16, 16], "epochs": 5},
+    "fqe_td": {"policy": POLICIES["discrete"], "n_members": 3, "hidden_sizes": [16]},
 }
 
 
@@ -159,10 +161,29 @@ def ensemble_disagreement_reference(detector: BaseDetector, trajectories: list) 
     return (spread**2).sum(dim=-1).mean(dim=0)
 
 
+def fqe_td_reference(detector: BaseDetector, trajectories: list) -> torch.Tensor:
+    encoding, standardizer = detector.action_encoding_, detector.input_standardizer_
+    states, next_states = (stacked(trajectories, lambda t, f=f: getattr(t, f)) for f in
+                           ("states", "next_states"))  # fmt: skip
+    actions = stacked(trajectories, lambda t: encoding.encode(t.actions))
+    next_actions = encoding.encode(detector.policy_.act(next_states))
+    q, q_next = (
+        torch_outputs(detector.weights_, standardizer.transform(np.hstack(pair)))[..., 0]
+        for pair in [(states, actions), (next_states, next_actions)]
+    )
+    rewards = torch.as_tensor(stacked(trajectories, lambda t: t.rewards.astype(np.float64)))
+    dones = torch.as_tensor(stacked(trajectories, lambda t: t.dones))
+    discount = torch.where(dones, 0.0, detector.gamma)
+    td = rewards / detector.reward_scale_ + discount * q_next - q
+    spread = q.std(dim=0, correction=0)
+    return td.abs().mean(dim=0) + detector.disagreement_weight * spread
+
+
 REFERENCES: dict[str, Callable[[BaseDetector, list], torch.Tensor]] = {
     "pedm": pedm_reference,
     "autoencoder": autoencoder_reference,
     "ensemble_disagreement": ensemble_disagreement_reference,
+    "fqe_td": fqe_td_reference,
 }
 
 

@@ -16,6 +16,11 @@ Threshold rules (`threshold_rule`), from the scores of held-out clean trajectori
   exchangeable with them, raises any false alarm with probability at most α. The threshold is
   the next float above that maximum: alarms are `score >= threshold`, and a tie with it must not
   alarm. It needs n ≥ 1/α − 1 trajectories (else no finite threshold bounds the rate).
+- ``"ville"``: log(1/α), whatever the held-out scores, for a detector whose score is the log
+  of a test martingale (`scores_are_log_martingales`, e.g. `conformal_martingale`): by Ville's
+  inequality a stream on which the martingale's assumptions hold reaches 1/α with probability
+  at most α. Other detectors refuse it. The log is `numerics.log` (32 significant bits, the
+  same on every machine), so the alarm level is 1/α to a relative 2⁻³².
 
 Parameters are keyword-only dataclass fields (`@detector_parameters`): the generated `__init__`
 stores each keyword argument under its own name and does nothing else, which is scikit-learn's
@@ -38,9 +43,10 @@ import numpy as np
 from oodrl.core.stream import DetectorStream, ReplayStream, RowStream
 from oodrl.core.trajectory import Trajectory
 from oodrl.errors import ConfigError, ContractError, DetectorError, NotFittedError
+from oodrl.numerics import log as machine_independent_log
 from oodrl.validation import Component, Interval, Options
 
-THRESHOLD_RULES = ("percentile", "max", "episode_max")
+THRESHOLD_RULES = ("percentile", "max", "episode_max", "ville")
 
 #: Declares a detector class's parameters as keyword-only fields. Equality stays identity (as
 #: for any estimator: two equal-parameter detectors fitted on different data are not equal) and
@@ -79,6 +85,8 @@ def threshold_from_scores(
     THRESHOLD_RULES (see the module docstring)."""
     if rule == "episode_max":
         return episode_max_threshold(np.array([np.max(s) for s in scores]), alpha)
+    if rule == "ville":
+        return ville_threshold(alpha)
     steps = np.concatenate(scores)
     if rule == "max":
         return float(np.max(steps))
@@ -103,6 +111,12 @@ def episode_max_threshold(maxima: np.ndarray, alpha: float) -> float:
     return float(np.nextafter(np.sort(maxima)[rank - 1], np.inf))
 
 
+def ville_threshold(alpha: float) -> float:
+    """log(1/α) = −log α: where a test martingale started at 1 alarms (Ville's inequality,
+    P(sup_t M_t ≥ 1/α) ≤ α), in the log scale its detector scores."""
+    return float(-machine_independent_log(alpha))
+
+
 @detector_parameters
 class BaseDetector(Component):
     """Fit once on in-distribution trajectories, calibrate on held-out ones, then score.
@@ -123,6 +137,11 @@ class BaseDetector(Component):
     #: it is defined in the oodrl package and its base class is, not when it is a plugin's; one
     #: that runs a library's own kernels says False (`oodrl.detectors.library`).
     machine_independent: ClassVar[bool]
+    #: Whether the scores depend on the fit set. False only for a baseline that ignores it by
+    #: design (`random_scores`): the contract then does not ask that refitting moves them.
+    learns_from_data: ClassVar[bool] = True
+    #: Whether z_t is the log of a test martingale, which the "ville" threshold rule needs.
+    scores_are_log_martingales: ClassVar[bool] = False
 
     _parameter_constraints: ClassVar[dict[str, list]] = {
         "threshold_rule": [Options(THRESHOLD_RULES)],
@@ -144,6 +163,14 @@ class BaseDetector(Component):
         if "machine_independent" not in cls.__dict__:
             inherited = getattr(cls, "machine_independent", True)
             cls.machine_independent = inherited and cls.__module__.split(".")[0] == "oodrl"
+
+    def validate_params(self) -> None:
+        super().validate_params()
+        if self.threshold_rule == "ville" and not self.scores_are_log_martingales:
+            raise ConfigError(
+                f"threshold_rule='ville' needs scores that are the log of a test martingale; "
+                f"{self.name}'s are not. Use 'percentile', 'max' or 'episode_max'."
+            )
 
     # -- what subclasses write -------------------------------------------------------------
     @abstractmethod

@@ -25,5 +25,14 @@ DETECTORS.register("ensemble_disagreement", "oodrl.detectors.ensemble:EnsembleDi
 DETECTORS.register("cusum", "oodrl.detectors.cusum:Cusum")
 DETECTORS.register("kde_density", "oodrl.detectors.kde:KdeDensity")
 DETECTORS.register("lyapunov_divergence", "oodrl.detectors.lyapunov:LyapunovDivergence")
+DETECTORS.register("q_margin", "oodrl.detectors.policy_view:QMargin")
+DETECTORS.register("q_entropy", "oodrl.detectors.policy_view:QEntropy")
+DETECTORS.register("q_energy", "oodrl.detectors.policy_view:QEnergy")
+DETECTORS.register("max_softmax", "oodrl.detectors.policy_view:MaxSoftmax")
+DETECTORS.register("fqe_td", "oodrl.detectors.fqe:FqeTd")
+DETECTORS.register("conformal_martingale", "oodrl.detectors.martingale:ConformalMartingale")
+DETECTORS.register("deedee", "oodrl.detectors.deedee:Deedee")
+DETECTORS.register("random_scores", "oodrl.detectors.random_scores:RandomScores")
+DETECTORS.register("riqn", "oodrl.detectors.riqn:Riqn")
 
 __all__ = ["DETECTORS"]

@@ -231,9 +231,11 @@ def train(
 ) -> tuple[EnsembleWeights, list[float]]:
     """Fit the members from `weights`, member m on rows `indices[m]`, with Adam.
 
-    Each epoch visits every member's rows in its own random order, in minibatches of
-    `settings.batch_size` (the last one smaller). Returns the trained weights and each epoch's
-    mean minibatch loss (summed over members).
+    `targets` (N, out) are every member's, or (M, N, out) each member's own (fitted Q
+    evaluation: each member regresses on its own bootstrapped values). Each epoch visits every
+    member's rows in its own random order, in minibatches of `settings.batch_size` (the last one
+    smaller). Returns the trained weights and each epoch's mean minibatch loss (summed over
+    members).
     """
     x = np.asarray(inputs, dtype=np.float32)
     y = np.asarray(targets, dtype=np.float32)
@@ -247,7 +249,8 @@ def train(
         for start in range(0, order.shape[1], settings.batch_size):
             batch = order[:, start : start + settings.batch_size]
             current = EnsembleWeights(params[:n_layers], params[n_layers:], weights.relu)
-            value, grads = gradients(current, x[batch], y[batch], loss)
+            batch_targets = y[batch] if y.ndim == 2 else np.take_along_axis(y, batch[..., None], 1)
+            value, grads = gradients(current, x[batch], batch_targets, loss)
             optimiser.step(params, [*grads.weights, *grads.biases])
             batch_losses.append(value)
         epoch_losses.append(math.fsum(batch_losses) / len(batch_losses))

@@ -7,6 +7,7 @@ delay, segments) and `bootstrap`; `aggregate` is the API the metrics stage calls
 a metric through the `oodrl.metrics` entry-point group.
 """
 
+from oodrl.config import OPT_IN_METRICS
 from oodrl.registry import Registry
 
 METRICS = Registry("metric")
@@ -33,6 +34,15 @@ for _name in (
 ):
     METRICS.register(_name, f"oodrl.metrics.aggregate:{_name.upper()}")
 del _name
+# Registered, but computed only where params list them in `metrics.extra` (SPEC §20).
+for _name in OPT_IN_METRICS:
+    METRICS.register(_name, f"oodrl.metrics.aggregate:{_name.upper()}")
+del _name
+
+
+def computed_metrics(extra: tuple[str, ...] | list[str] = ()) -> list[str]:
+    """The registered metrics every results record holds, with the opt-in ones named."""
+    return [name for name in METRICS.names() if name not in OPT_IN_METRICS or name in extra]
 
 
 def higher_is_better(name: str) -> bool:

@@ -33,6 +33,7 @@ from oodrl.metrics.ranking import (
     average_precision_rows,
     fpr_at_tpr_rows,
     temporal_auroc_rows,
+    vus_pr_rows,
 )
 
 if TYPE_CHECKING:
@@ -186,6 +187,12 @@ TEMPORAL_AUROC = Metric(
     lambda b, s: temporal_auroc_rows(b.perturbed, b.labels, s.temporal_buffer),
     "range-based AUROC (Paparrizos et al. 2022) of z̃ against y",
 )
+#: Opt-in (`oodrl.config.OPT_IN_METRICS`): computed where params list it in `metrics.extra`.
+VUS_PR = Metric(
+    True,
+    lambda b, s: vus_pr_rows(b.perturbed, b.labels, s.temporal_buffer),
+    "VUS-PR (Paparrizos et al. 2022; TSB-AD) of z̃ against y over buffers 0..temporal_buffer",
+)
 
 
 def _scores(values: np.ndarray, which: str, detector: str) -> np.ndarray:
@@ -276,7 +283,9 @@ def episode_metrics(
         offset,
         latency,
     )
-    return _compute(batch, settings, METRICS.names())
+    from oodrl.metrics import computed_metrics
+
+    return _compute(batch, settings, computed_metrics(settings.extra))
 
 
 def null_episode_metrics(

@@ -1,8 +1,8 @@
 """Ranking metrics of SPEC §6: AUROC, average precision (the step-wise area under the
 precision-recall curve, reported as "AUPRC"), FPR at a TPR target on the interpolated ROC curve,
-and the range-based temporal AUROC. Ties between scores are handled explicitly by each: they
-count ½ in the AUROC, as one threshold in the average precision and as a fraction at the
-FPR-at-TPR operating point. Score direction: larger = more anomalous.
+and the range-based temporal AUROC and VUS-PR. Ties between scores are handled explicitly by
+each: they count ½ in the AUROC, as one threshold in the average precision (and VUS-PR) and as a
+fraction at the FPR-at-TPR operating point. Score direction: larger = more anomalous.
 
 Every function works on rows: `scores` (N, n) float64, one row per episode, and boolean masks
 `positive` / `negative` (N, n) that say which entries are positives and which negatives; an entry
@@ -246,3 +246,82 @@ def temporal_auroc_rows(scores: np.ndarray, labels: np.ndarray, buffer: int = 10
     """`temporal_auroc` of every row of (N, T) scores against (N, T) labels."""
     scores, labels, _ = _rows(scores, labels, None)
     return np.array([temporal_auroc(s, y, buffer) for s, y in zip(scores, labels, strict=True)])
+
+
+def buffered_ranges(labels: np.ndarray, half: int) -> list[tuple[int, int]]:
+    """The anomaly ranges of 1-D boolean labels widened by `half` steps on each side (clipped
+    to the series), half-open; widened ranges that share a step merge (TSB-AD's
+    `new_sequence`: ranges that only touch stay apart)."""
+    T = len(labels)  # noqa: N806 - the protocol's name for the horizon
+    merged: list[list[int]] = []
+    for start, end in label_ranges(labels):
+        a, b = max(start - half, 0), min(end + half, T)
+        if merged and a < merged[-1][1]:
+            merged[-1][1] = b
+        else:
+            merged.append([a, b])
+    return [(a, b) for a, b in merged]
+
+
+def range_average_precision(scores: np.ndarray, labels: np.ndarray, buffer: int) -> float:
+    """Range-based average precision at one label buffer (Paparrizos et al. 2022, as TSB-AD's
+    `RangeAUC_volume_opt` computes it for one window).
+
+    With ℓ = `soft_labels(labels, buffer)`, P = Σ y, and for each threshold θ (every distinct
+    score, high to low) the prediction p = [s ≥ θ]:
+
+        TP = Σ ℓ·p                    (anomaly steps count 1, buffer steps their ℓ)
+        P' = P + ½ Σ_{y = 0} ℓ·p       (the buffer mass that was predicted counts half)
+        TPR(θ) = min(TP / P', 1) · (fraction of the ranges, widened by ⌊buffer/2⌋ steps,
+                                    containing a predicted step)
+        Precision(θ) = TP / Σ p
+
+    and AP = Σ_θ (TPR(θ) − TPR(θ⁺)) · Precision(θ), θ⁺ the threshold before θ (TPR 0 before
+    the first). With `buffer` 0 or 1 and one anomaly range it is the average precision
+    (`average_precision_rows`); with several ranges the existence factor also counts how many
+    ranges were found. TSB-AD evaluates 250 sub-sampled thresholds; this uses every distinct
+    score, so it is exact. No positive step gives 0.0 (as the average precision).
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    labels = np.asarray(labels, dtype=bool)
+    if scores.ndim != 1 or labels.shape != scores.shape:
+        raise ContractError(
+            f"scores and labels must be 1-D of one length; got {scores.shape}, {labels.shape}."
+        )
+    if buffer < 0:
+        raise ContractError(f"buffer must be >= 0; got {buffer}.")
+    n_positive = int(labels.sum())
+    if n_positive == 0:
+        return 0.0
+    soft = soft_labels(labels, buffer)
+    order = np.argsort(-scores, kind="stable")
+    s = scores[order]
+    _, last = _tie_bounds(s[None, :])
+    group_end = np.flatnonzero(last[0] == np.arange(s.size))
+    thresholds = s[group_end]
+    inside = np.cumsum(labels[order])[group_end]
+    buffer_mass = np.cumsum(np.where(labels, 0.0, soft)[order])[group_end]
+    true_mass = inside + buffer_mass
+    recall = np.minimum(true_mass / (n_positive + buffer_mass / 2), 1.0)
+    ranges = buffered_ranges(labels, buffer // 2)
+    range_peaks = np.sort([scores[a:b].max() for a, b in ranges])
+    ranges_found = len(ranges) - np.searchsorted(range_peaks, thresholds, side="left")
+    tpr = recall * ranges_found / len(ranges)
+    precision = true_mass / (group_end + 1)
+    return float(np.sum(np.diff(tpr, prepend=0.0) * precision))
+
+
+def vus_pr(scores: np.ndarray, labels: np.ndarray, buffer: int = 10) -> float:
+    """VUS-PR: the volume under the range-based precision-recall surface, the mean of
+    `range_average_precision` over the buffers 0, 1, …, `buffer` (TSB-AD's VUS-PR with its
+    window 2L = `buffer`: the last surface's labels are softened ⌊buffer/2⌋ steps on each side
+    of a range, as `temporal_auroc`'s are)."""
+    if buffer < 0:
+        raise ContractError(f"buffer must be >= 0; got {buffer}.")
+    return float(np.mean([range_average_precision(scores, labels, w) for w in range(buffer + 1)]))
+
+
+def vus_pr_rows(scores: np.ndarray, labels: np.ndarray, buffer: int = 10) -> np.ndarray:
+    """`vus_pr` of every row of (N, T) scores against (N, T) labels."""
+    scores, labels, _ = _rows(scores, labels, None)
+    return np.array([vus_pr(s, y, buffer) for s, y in zip(scores, labels, strict=True)])

@@ -24,6 +24,7 @@ __all__ = [
     "check_streaming",
     "check_threshold",
     "check_torch_free_import",
+    "linear_system_policy",
     "linear_system_trajectories",
     "with_extra_state_dimension",
 ]

@@ -20,6 +20,7 @@ import pickle
 import subprocess
 import sys
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import numpy as np
 
@@ -56,22 +57,75 @@ def linear_system_trajectories(
     and the action kind only; trajectory i draws from its own generator, so the first k of n
     trajectories do not depend on n.
     """
+    dynamics, effects, matrix = _linear_system(seed, state_dim, n_actions, action_dim)
+    if action_dim is None:
+        act = _discrete_policy(effects, matrix)
+    else:
+        act = _continuous_policy(effects, matrix)
+    return [_trajectory(act, dynamics, T, episode_length, [seed, 1, index]) for index in range(n)]
+
+
+def linear_system_policy(
+    path: str | Path,
+    *,
+    state_dim: int = 4,
+    n_actions: int = 3,
+    action_dim: int | None = None,
+    seed: int = 0,
+) -> Path:
+    """Write the policy of `linear_system_trajectories` (same arguments) without its exploration
+    noise to `path`, as an oodrl checkpoint, for detectors that read the agent's policy (a
+    `policy` parameter); returns the path. Needs torch.
+
+    Discrete: a one-layer `mlp` whose values are P s (the data's actions are argmax(P s + Gumbel
+    noise), a softmax policy of those values). Continuous: a one-layer `clipped_actor`,
+    clip(K s, −1, 1), a deterministic actor with no value head.
+    """
+    import torch
+
+    from oodrl.policies.checkpoint import CHECKPOINT_FORMAT, CHECKPOINT_VERSION
+
+    _, _, matrix = _linear_system(seed, state_dim, n_actions, action_dim)
+    if action_dim is None:
+        architecture: dict = {"kind": "mlp"}
+    else:
+        bounds = {"action_low": [-1.0] * action_dim, "action_high": [1.0] * action_dim}
+        architecture = {"kind": "clipped_actor", **bounds}
+    weights = {
+        "net.0.weight": torch.tensor(matrix, dtype=torch.float32),
+        "net.0.bias": torch.zeros(len(matrix)),
+    }
+    checkpoint = {
+        "format": CHECKPOINT_FORMAT,
+        "version": CHECKPOINT_VERSION,
+        "architecture": architecture,
+        "state_dict": weights,
+    }
+    torch.save(checkpoint, path)
+    return Path(path)
+
+
+def _linear_system(
+    seed: int, state_dim: int, n_actions: int, action_dim: int | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The system of `linear_system_trajectories`: the dynamics A, the actions' effects (rows
+    B[a] for discrete actions, the matrix B for continuous ones) and the policy's matrix (the
+    values' P, or the gain K)."""
     system = np.random.default_rng([seed, 0])
     dynamics = 0.9 * np.linalg.qr(system.standard_normal((state_dim, state_dim)))[0]
     if action_dim is None:
-        act = _discrete_policy(system, state_dim, n_actions)
-    else:
-        act = _continuous_policy(system, state_dim, action_dim)
-    return [_trajectory(act, dynamics, T, episode_length, [seed, 1, index]) for index in range(n)]
+        effects = 0.3 * system.standard_normal((n_actions, state_dim))
+        return dynamics, effects, system.standard_normal((n_actions, state_dim))
+    effects = 0.3 * system.standard_normal((state_dim, action_dim))
+    return dynamics, effects, 0.5 * system.standard_normal((action_dim, state_dim))
 
 
 #: A policy and the effect of its action: (state, rng) -> (action, its additive effect on s').
 ActionModel = Callable[[np.ndarray, np.random.Generator], tuple[np.ndarray, np.ndarray]]
 
 
-def _discrete_policy(system: np.random.Generator, state_dim: int, n_actions: int) -> ActionModel:
-    action_effects = 0.3 * system.standard_normal((n_actions, state_dim))
-    policy = system.standard_normal((n_actions, state_dim))
+def _discrete_policy(action_effects: np.ndarray, policy: np.ndarray) -> ActionModel:
+    n_actions = len(policy)
 
     def act(state: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         action = np.argmax(policy @ state + rng.gumbel(size=n_actions))
@@ -80,9 +134,8 @@ def _discrete_policy(system: np.random.Generator, state_dim: int, n_actions: int
     return act
 
 
-def _continuous_policy(system: np.random.Generator, state_dim: int, action_dim: int) -> ActionModel:
-    action_effects = 0.3 * system.standard_normal((state_dim, action_dim))
-    gain = 0.5 * system.standard_normal((action_dim, state_dim))
+def _continuous_policy(action_effects: np.ndarray, gain: np.ndarray) -> ActionModel:
+    action_dim = len(gain)
 
     def act(state: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         noisy = gain @ state + 0.3 * rng.standard_normal(action_dim)
@@ -179,11 +232,15 @@ def check_scores_use_the_data(
     Shape, dtype and finiteness are the base class's to enforce; what it cannot see is a
     detector that scores every step alike (an unfinished `_score`) or ignores what it learned
     (stale or unused fitted state). So: the scores vary over the steps, and fitting on the fit
-    set moved and stretched changes them.
+    set moved and stretched changes them (unless the detector declares `learns_from_data =
+    False`: a baseline that ignores the fit set by design).
     """
-    scores = [o.scores for o in factory().fit(fit_trajectories).score_many(trajectories)]
+    detector = factory()
+    scores = [o.scores for o in detector.fit(fit_trajectories).score_many(trajectories)]
     steps = np.concatenate(scores)
     assert np.ptp(steps) > 0, f"every step scored {steps[0]}: the scores ignore the steps."
+    if not detector.learns_from_data:
+        return
     moved = [_moved_and_stretched(t) for t in fit_trajectories]
     refitted = [o.scores for o in factory().fit(moved).score_many(trajectories)]
     assert any(not np.array_equal(a, b) for a, b in zip(scores, refitted, strict=True)), (
