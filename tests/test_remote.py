@@ -1,7 +1,8 @@
 """A shared DVC remote (SPEC §16): a fresh clone gets every result by `dvc pull`, and a second
 machine's `dvc repro` restores stages from the run-cache instead of recomputing them. Against a
 directory remote and a real S3-API server on loopback (moto's server, as DVC's S3 plugin is
-tested); a remote that refuses stops `oodrl suite run` in one line, before anything runs."""
+tested); a remote whose probe write fails (a bucket that does not exist) stops `oodrl suite run`
+in one line, before anything runs."""
 
 from __future__ import annotations
 
@@ -98,13 +99,14 @@ def test_a_fresh_clone_pulls_and_a_second_machine_restores(built, remote, tmp_pa
     assert {k: v for k, v in locks(second).items() if k.startswith(PROJECT)} == project_locks
 
 
-def test_suite_run_stops_in_one_line_when_the_remote_refuses(repo_root, s3_server, tmp_path):
+def test_suite_run_stops_in_one_line_when_the_bucket_does_not_exist(repo_root, s3_server, tmp_path):
     repo = two_environment_suite(repo_root, head_commit(repo_root), tmp_path / "repo")
     configure(repo, {"url": "s3://no-such-bucket/oodrl", "endpointurl": s3_server})
     before = checkout(repo)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
     assert result.exit_code == 1
     assert result.output.count("\n") == 1
-    assert "DVC remote 'lab' (s3://no-such-bucket/oodrl) refuses a write" in result.output
+    # Not a refusal (which would make the remote read-only, tests/test_readonly_remote.py)
+    assert "DVC remote 'lab' (s3://no-such-bucket/oodrl) fails a probe write" in result.output
     assert "bucket does not exist" in result.output
     assert checkout(repo) == before

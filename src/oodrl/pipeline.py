@@ -668,9 +668,10 @@ def _flow(values: list):
 
 
 def pipeline_dirs(root: Path) -> list[Path]:
-    """The root, then every environment directory holding a params file."""
-    found = sorted(p.parent for p in (root / ENVIRONMENTS_DIR).glob(f"*/{PARAMS_FILE}"))
-    return [root, *found]
+    """The root, then every environment directory holding a params file; never a hidden one
+    (`oodrl new` stages a pipeline in `.NAME.new-<pid>` until it renames it into place)."""
+    found = (p.parent for p in (root / ENVIRONMENTS_DIR).glob(f"*/{PARAMS_FILE}"))
+    return [root, *sorted(d for d in found if not d.name.startswith("."))]
 
 
 #: The suite's own pipeline: the leaderboard over every environment's results (SPEC §12).
@@ -687,7 +688,11 @@ def rendered_suite(root: Path) -> str:
     # off the leaderboard unless it is added to oodrl.suite's PIPELINE_DIRS (SPEC §18).
     suite = {(root / d).resolve() for d in suite_runs().values()}
     environments = [d for d in pipeline_dirs(root) if d.resolve() in suite]
-    code = sorted(project.relative(p) for p in project.command_closure("leaderboard"))
+    from oodrl.report.leaderboard_page import PAGE_TEMPLATE
+
+    # The page's template is code the stage runs, though no import names it.
+    template = project.package_dir / PAGE_TEMPLATE.relative_to(PAGE_TEMPLATE.parents[1])
+    code = sorted(project.relative(p) for p in {*project.command_closure("leaderboard"), template})
     stage = {
         "cmd": "oodrl leaderboard --out reports",
         "deps": [
@@ -707,7 +712,14 @@ def rendered_suite(root: Path) -> str:
                 ]
             }
         ],
-        "outs": ["reports/leaderboard.md", "reports/leaderboard.yaml", "reports/leaderboard.png"],
+        "outs": [
+            "reports/leaderboard.md",
+            "reports/leaderboard.yaml",
+            "reports/leaderboard.png",
+            # The page and its data are small results, tracked by git (SPEC §21).
+            {"reports/leaderboard.json": {"cache": False}},
+            {"reports/leaderboard.html": {"cache": False}},
+        ],
         "metrics": [{"reports/metrics.json": {"cache": False}}],
     }
     header = (

@@ -88,6 +88,7 @@ def test_every_stage_depends_on_its_code_stamp_and_check_params_on_the_sources(r
 # -- environment pipelines ---------------------------------------------------------------------
 CARTPOLE_PARAMS = (
     "extends: ../../params.yaml\nenv: {id: CartPole-v1, T: 60}\n"
+    "policy: {train: {env_id: CartPole-v1}}\n"
     "anomaly: {injectors: {action_conditioned_dynamics: {target_action: 1}}}\n"
 )
 
@@ -366,5 +367,9 @@ def test_the_suite_pipeline_reads_every_runs_results(repo_root):
     runs = {f"../{directory.name}/reports/results.yaml" for directory in suite_runs().values()}
     assert results == runs and len(runs) == len(PIPELINE_DIRS) + len(MORE_POLICIES)
     assert "../../src/oodrl/metrics/leaderboard.py" in deps
+    assert "../../src/oodrl/report/leaderboard_page.html" in deps  # the page's template
+    outs = stage["leaderboard"]["outs"]  # the page and its data: git-tracked (SPEC §21)
+    assert {"reports/leaderboard.html": {"cache": False}} in outs
+    assert {"reports/leaderboard.json": {"cache": False}} in outs
     root_stages = yaml.safe_load((repo_root / "dvc.yaml").read_text())["stages"]
     assert "leaderboard" not in root_stages  # the root `dvc repro` stays the paper default

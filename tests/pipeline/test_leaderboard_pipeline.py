@@ -7,7 +7,7 @@ from pathlib import Path
 from conftest import DETECTORS, INJECTORS
 
 from oodrl import yamlio
-from oodrl.report.leaderboard import run_leaderboard
+from oodrl.stages.leaderboard import run_leaderboard
 
 
 def test_leaderboard_reads_the_pipelines_results(built_repo: Path, tmp_path: Path):

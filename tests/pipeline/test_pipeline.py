@@ -58,7 +58,7 @@ def test_full_pipeline_writes_every_output(built_repo):
 def _check_tier_results(repo) -> None:
     """SPEC §15: every detector at every reachable tier of every fault, at the per-stream rule."""
     from oodrl.impact import UNREACHABLE
-    from oodrl.tiers import read_tiers
+    from oodrl.tiers import read_impact, read_tiers
 
     document = yaml.safe_load((repo / "reports/tier_results.yaml").read_text())
     assert document["protocol_version"] == 2 and document["params_hash"].startswith("sha256:")
@@ -77,6 +77,8 @@ def _check_tier_results(repo) -> None:
         assert sum(detections) / 3 == pytest.approx(point["detection_rate"], abs=1e-6)
     for fault, impact in document["impact"].items():
         assert set(impact["tiers"]) == {"mild", "moderate", "severe"}, fault
+        measured = read_impact(repo / f"data/impact/{fault}.yaml", fault)["fault"]
+        assert impact["curve"] == measured["curve"]  # the leaderboard page draws it
         for tier in impact["tiers"].values():
             assert tier["severity"] == UNREACHABLE or 0 < tier["severity"] <= 1
     assert set(document["minimum_detectable_impact"]) <= set(DETECTORS)

@@ -9,6 +9,7 @@ console errors, uncaught exceptions and every request that left the machine's fi
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import fcntl
 import json
@@ -101,10 +102,19 @@ class _Pipe:
 
 
 def load_offline(
-    url: str, probe: str, ready: str, *, timeout: float = 60.0, settle: float = 1.0
+    url: str,
+    probe: str,
+    ready: str,
+    *,
+    timeout: float = 60.0,
+    settle: float = 1.0,
+    screenshot: Path | None = None,
+    viewport: tuple[int, int] | None = None,
 ) -> PageReport:
     """Open `url`, wait until the JavaScript expression `ready` is true (or `timeout`), let the
-    page settle, and return the value of the expression `probe` with the page's errors."""
+    page settle, and return the value of the expression `probe` with the page's errors; with
+    `screenshot`, the page as the probe left it is saved there as PNG. `viewport`: the window's
+    (width, height) in CSS pixels, instead of chromium's default."""
     chromium = chromium_path()
     if chromium is None:
         raise FileNotFoundError("chromium is not installed")
@@ -140,7 +150,7 @@ def load_offline(
         os.close(from_browser_write)
         try:
             pipe = _Pipe(process, to_browser, from_browser)
-            return _inspect(pipe, url, probe, ready, timeout, settle)
+            return _inspect(pipe, url, probe, ready, timeout, settle, screenshot, viewport)
         finally:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(process.pid, signal.SIGKILL)
@@ -156,18 +166,33 @@ def _above_nine(fd: int) -> int:
 
 
 def _inspect(
-    pipe: _Pipe, url: str, probe: str, ready: str, timeout: float, settle: float
+    pipe: _Pipe,
+    url: str,
+    probe: str,
+    ready: str,
+    timeout: float,
+    settle: float,
+    screenshot: Path | None = None,
+    viewport: tuple[int, int] | None = None,
 ) -> PageReport:
     target = pipe.send("Target.createTarget", {"url": "about:blank"})["targetId"]
     session = pipe.send("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
     for domain in ("Runtime", "Log", "Network", "Page"):
         pipe.send(f"{domain}.enable", session=session)
+    if viewport is not None:
+        width, height = viewport
+        metrics = {"width": width, "height": height, "deviceScaleFactor": 1, "mobile": False}
+        pipe.send("Emulation.setDeviceMetricsOverride", metrics, session=session)
     pipe.send("Page.navigate", {"url": url}, session=session)
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and not _evaluate(pipe, session, ready):
         pipe.pump(0.2)
     pipe.pump(settle)
     report = PageReport(facts=_evaluate(pipe, session, probe))
+    if screenshot is not None:
+        pipe.pump(0.2)  # let the probe's changes paint
+        image = pipe.send("Page.captureScreenshot", {"format": "png"}, session=session)["data"]
+        Path(screenshot).write_bytes(base64.b64decode(image))
     for event in pipe.events:
         _record(report, event)
     return report

@@ -10,7 +10,8 @@ import pytest
 
 from oodrl import yamlio
 from oodrl.errors import StoreError
-from oodrl.report.leaderboard import read_inputs, run_leaderboard
+from oodrl.report.leaderboard import read_inputs
+from oodrl.stages.leaderboard import run_leaderboard
 
 DETECTORS = ("cusum", "kde_density", "pedm")
 
@@ -102,6 +103,8 @@ def test_tiers_policies_operating_points_flags_and_mdi(tmp_path: Path):
     mdi = {"minimum_detectable_impact": {
         "cusum": {"gradual_drift": {"matched_auroc": 0.031, "detection_rate@100": "beyond range"}},
         "pedm": {"gradual_drift": {"matched_auroc": 0.12}},
+        # Reached already at the first measured tier: a bound (SPEC §19).
+        "kde_density": {"gradual_drift": {"matched_auroc": {"at_most": 0.05}}},
     }}  # fmt: skip
     results = {
         (env, policy): write_results(
@@ -138,7 +141,7 @@ def test_tiers_policies_operating_points_flags_and_mdi(tmp_path: Path):
         "## Minimum detectable impact: the smallest return loss 1 − R̃ at which matched AUROC "
         "reaches 0.9" in text
     )
-    assert "| CartPole-v1 / policy 0 / gradual_drift | 3.1% | 12.0% |" in text
+    assert "| CartPole-v1 / policy 0 / gradual_drift | 3.1% | ≤ 5.0% | 12.0% |" in text
     assert "| beyond range |" in text
     document = yamlio.load((tmp_path / "out" / "leaderboard.yaml").read_text())
     assert document["protocol_version"] == 2 and document["alpha"] == 0.05

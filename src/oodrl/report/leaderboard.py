@@ -6,21 +6,21 @@ faulty stream where the metrics stage computes operating points), and name their
 (records without one are scored at the headline severity: tier ``headline``). A record's
 ``operating_point.alpha`` is the false-alarm budget of its detection rate; a document's
 ``minimum_detectable_impact`` maps detector → fault → criterion → the smallest return loss
-1 − R̃ at which the criterion is met, or "beyond range". Every file carries a protocol version
+1 − R̃ at which the criterion is met, `{at_most: loss}` when already met at the first measured
+severity (a bound, shown "≤ loss"), or "beyond range". Every file carries a protocol version
 (`oodrl.metrics.stamp.protocol_stamp`; unstamped files are version 1) and files of two
-versions are refused. Aggregation: `oodrl.metrics.leaderboard.build_board`.
+versions are refused. Aggregation: `oodrl.metrics.leaderboard.build_board`; the page of
+every cell and its evidence: `oodrl.report.leaderboard_page`.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from oodrl import yamlio
-from oodrl.fileio import atomic_write_text
 from oodrl.metrics.leaderboard import (
     FIRST_POLICY,
     HEADLINE_TIER,
@@ -31,7 +31,6 @@ from oodrl.metrics.leaderboard import (
     Board,
     Cell,
     Interval,
-    build_board,
     policy_key,
 )
 from oodrl.metrics.stamp import UNSTAMPED_VERSION, one_protocol_version
@@ -41,7 +40,6 @@ from oodrl.report.tables import UNCERTIFIED, certification_note, marked, record_
 OPERATING_POINT = "operating_point"
 #: A results document's minimum-detectable-impact section.
 MINIMUM_DETECTABLE_IMPACT = "minimum_detectable_impact"
-BEYOND_RANGE = "beyond range"
 #: The level a criterion of the minimum detectable impact must reach (SPEC §15).
 MDI_LEVEL = 0.9
 #: Human names of the leaderboard's metrics (others print as named).
@@ -53,8 +51,11 @@ GAP_FLOOR = 1e-4
 
 #: Results files (one or several) by (environment, policy), or by environment for policy "0".
 ResultsPaths = Mapping[tuple[str, str] | str, Path | Sequence[Path]]
-#: criterion → (environment, policy, fault) → detector → return loss, or "beyond range".
-MinimumDetectableImpact = dict[str, dict[tuple[str, str, str], dict[str, float | str]]]
+#: criterion → (environment, policy, fault) → detector → return loss, a bound
+#: `{at_most: loss}`, or "beyond range" (`oodrl.impact.minimum_detectable_impact`).
+MinimumDetectableImpact = dict[
+    str, dict[tuple[str, str, str], dict[str, float | str | dict[str, float]]]
+]
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,12 @@ class Inputs:
     minimum_detectable_impact: MinimumDetectableImpact = field(default_factory=dict)
     #: Detectors some results file lists as not certified machine-independent (SPEC §14, §17).
     uncertified: tuple[str, ...] = ()
+    #: (cell, detector) → its results record: the evidence the leaderboard page shows.
+    records: dict[tuple[Cell, str], dict[str, Any]] = field(default_factory=dict)
+    #: (environment, policy, fault) → its impact curve and tiers, where tier results hold one.
+    impact: dict[tuple[str, str, str], dict[str, Any]] = field(default_factory=dict)
+    #: (environment, policy) → the params hashes of its results files (None: unstamped).
+    params_hashes: dict[tuple[str, str], tuple[str | None, ...]] = field(default_factory=dict)
 
 
 def _run_key(key: tuple[str, str] | str) -> tuple[str, str]:
@@ -91,6 +98,9 @@ def read_inputs(results: ResultsPaths) -> Inputs:
     documents: dict[str, Any] = {}
     cells: dict[str, dict[Cell, dict[str, list[float]]]] = {}
     metrics_of: dict[tuple[Cell, str], tuple[Path, set[str]]] = {}
+    records: dict[tuple[Cell, str], dict[str, Any]] = {}
+    impact: dict[tuple[str, str, str], dict[str, Any]] = {}
+    hashes: dict[tuple[str, str], set[str | None]] = {}
     alphas: set[float] = set()
     mdi: MinimumDetectableImpact = {}
     uncertified: set[str] = set()
@@ -104,6 +114,9 @@ def read_inputs(results: ResultsPaths) -> Inputs:
             document = yamlio.load(path.read_text())
             documents[str(path)] = document
             uncertified.update(document.get(UNCERTIFIED) or ())
+            hashes.setdefault((env_id, policy), set()).add(document.get("params_hash"))
+            for fault, curve in (document.get("impact") or {}).items():
+                impact[(env_id, policy, fault)] = curve
             for record in document["records"]:
                 if record["kind"] != "anomaly":
                     continue
@@ -122,6 +135,7 @@ def read_inputs(results: ResultsPaths) -> Inputs:
                         f"{metrics_of[(cell, detector)][0]})."
                     )
                 metrics_of[(cell, detector)] = (path, set(episodes))
+                records[(cell, detector)] = record
                 for metric, values in episodes.items():
                     cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
                 alpha = (record.get(OPERATING_POINT) or {}).get("alpha")
@@ -155,7 +169,12 @@ def read_inputs(results: ResultsPaths) -> Inputs:
             )
     version = one_protocol_version(documents)
     alpha = next(iter(alphas)) if len(alphas) == 1 else None
-    return Inputs(cells, version, alpha, mdi, tuple(sorted(uncertified)))
+    params_hashes = {
+        run: tuple(sorted(found, key=lambda h: h or "")) for run, found in sorted(hashes.items())
+    }
+    return Inputs(
+        cells, version, alpha, mdi, tuple(sorted(uncertified)), records, impact, params_hashes
+    )
 
 
 def metric_label(metric: str, alpha: float | None = None) -> str:
@@ -317,6 +336,8 @@ def _flag_lines(board: Board, detectors: Sequence[str]) -> list[str]:
 
 
 def _mdi_lines(mdi: MinimumDetectableImpact, alpha: float | None) -> list[str]:
+    from oodrl.impact import impact_text
+
     lines = []
     for criterion, rows in sorted(mdi.items()):
         detectors = sorted({d for row in rows.values() for d in row})
@@ -324,15 +345,7 @@ def _mdi_lines(mdi: MinimumDetectableImpact, alpha: float | None) -> list[str]:
         table_rows = []
         for (env, policy, fault), values in sorted(rows.items()):
             name = f"{env} / policy {policy} / {fault}" if several else f"{env} / {fault}"
-            cells = []
-            for d in detectors:
-                value = values.get(d)
-                if value is None:
-                    cells.append("—")
-                elif value == BEYOND_RANGE:
-                    cells.append(BEYOND_RANGE)
-                else:
-                    cells.append(f"{100 * float(value):.1f}%")
+            cells = ["—" if values.get(d) is None else impact_text(values[d]) for d in detectors]
             table_rows.append([name, *cells])
         lines += [
             f"## Minimum detectable impact: the smallest return loss 1 − R̃ at which "
@@ -547,24 +560,3 @@ def plot(board: Board, path: Path, alpha: float | None = None) -> Path:
     gaps.set_xlabel(f"optimality gap 1 − {label} (log; 0 drawn at {GAP_FLOOR:g})")
     gaps.set_title("Optimality gap [95% CI] (lower is better)")
     return _save(figure, path)
-
-
-def run_leaderboard(
-    results: ResultsPaths, out_dir: Path, n_boot: int, ci: float, seed: int
-) -> Board:
-    """Write leaderboard.md, leaderboard.yaml, metrics.json and leaderboard.png into out_dir."""
-    inputs = read_inputs(results)
-    board = build_board(inputs.cells, n_boot=n_boot, ci=ci, seed=seed)
-    extras = {
-        "protocol_version": inputs.protocol_version,
-        "alpha": inputs.alpha,
-        "minimum_detectable_impact": inputs.minimum_detectable_impact,
-        "uncertified": inputs.uncertified,
-    }
-    out_dir = Path(out_dir)
-    atomic_write_text(out_dir / "leaderboard.md", markdown(board, **extras))
-    atomic_write_text(out_dir / "leaderboard.yaml", yamlio.dump(board_mapping(board, **extras)))
-    text = json.dumps(metrics_json(board), indent=2, sort_keys=True) + "\n"
-    atomic_write_text(out_dir / "metrics.json", text)
-    plot(board, out_dir / "leaderboard.png", inputs.alpha)
-    return board

@@ -3,8 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from oodrl.config import Params
+
+if TYPE_CHECKING:
+    from oodrl.metrics.leaderboard import Board
+    from oodrl.report.leaderboard import ResultsPaths
 
 #: A pipeline's results at the headline severity (always there) and at the impact tiers
 #: (where the pipeline scores them), relative to its directory.
@@ -28,7 +33,39 @@ def results_files(root: Path) -> dict[tuple[str, str], list[Path]]:
 
 
 def run(params: Params, root: Path, out_dir: Path) -> None:
-    from oodrl.report.leaderboard import run_leaderboard
-
     m = params.metrics
     run_leaderboard(results_files(root), out_dir, n_boot=m.n_boot, ci=m.ci, seed=params.seed)
+
+
+def run_leaderboard(
+    results: ResultsPaths, out_dir: Path, n_boot: int, ci: float, seed: int
+) -> Board:
+    """Write leaderboard.md, leaderboard.yaml, metrics.json, leaderboard.png and the page's
+    leaderboard.json and leaderboard.html into out_dir."""
+    import json
+
+    from oodrl import yamlio
+    from oodrl.fileio import atomic_write_text
+    from oodrl.metrics.leaderboard import build_board
+    from oodrl.report import leaderboard as report
+    from oodrl.report.leaderboard_page import page_data, page_html, page_json
+
+    inputs = report.read_inputs(results)
+    board = build_board(inputs.cells, n_boot=n_boot, ci=ci, seed=seed)
+    extras = {
+        "protocol_version": inputs.protocol_version,
+        "alpha": inputs.alpha,
+        "minimum_detectable_impact": inputs.minimum_detectable_impact,
+        "uncertified": inputs.uncertified,
+    }
+    out_dir = Path(out_dir)
+    atomic_write_text(out_dir / "leaderboard.md", report.markdown(board, **extras))
+    mapping = report.board_mapping(board, **extras)
+    atomic_write_text(out_dir / "leaderboard.yaml", yamlio.dump(mapping))
+    text = json.dumps(report.metrics_json(board), indent=2, sort_keys=True) + "\n"
+    atomic_write_text(out_dir / "metrics.json", text)
+    report.plot(board, out_dir / "leaderboard.png", inputs.alpha)
+    data = page_data(inputs, board, n_boot=n_boot, ci=ci, seed=seed)
+    atomic_write_text(out_dir / "leaderboard.json", page_json(data))
+    atomic_write_text(out_dir / "leaderboard.html", page_html(data))
+    return board

@@ -1,0 +1,187 @@
+"""The leaderboard page (SPEC §21): one self-contained HTML file of every cell and its evidence.
+
+`page_data` gathers what the leaderboard read (`oodrl.report.leaderboard.read_inputs`) and
+ranked into one document, leaderboard.json: every (environment, policy, fault, tier) cell with
+each detector's score per metric (the mean of its per-episode values, the (run, task) score the
+leaderboard aggregates) and its evidence (the record's severity, matched AUROC with its CI and,
+at the impact tiers, its operating point: detection rate against K, delays, the clean
+false-alarm rate achieved beside α); each (environment, policy, fault)'s impact curve and tiers,
+with a tier's verification where the tier results carry one; the protocol version and a params
+hash. `page_html` embeds that document, as a `<script type="application/json">` block, in the
+template leaderboard_page.html, whose inline CSS and JavaScript draw the table and the evidence
+(SVG): the page needs no network and no fetch. Same inputs, same bytes: keys sorted, no time,
+no host path (SPEC §14).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import html
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from oodrl.metrics.leaderboard import (
+    FAULT_FAMILIES,
+    OTHER_FAMILY,
+    TRIVIAL_DETECTORS,
+    Board,
+    Cell,
+    fault_family,
+    policy_key,
+)
+from oodrl.metrics.stamp import UNSTAMPED_VERSION
+from oodrl.report.leaderboard import MATCHED_AUROC, OPERATING_POINT, Inputs, metric_label
+
+#: The page's HTML, CSS and JavaScript; the suite's leaderboard stage depends on it.
+PAGE_TEMPLATE = Path(__file__).with_name("leaderboard_page.html")
+#: What the template holds in place of the page's data and stamp.
+MARKS = ("@@PROTOCOL_VERSION@@", "@@PARAMS_HASH@@", "@@DATA@@")
+
+
+def _rounded(value: float) -> float:
+    return round(float(value), 6) + 0.0
+
+
+def curve_steps(curve: Mapping[int, float]) -> list[list[float]]:
+    """A detection-rate curve {K: rate} as its steps: each K where the rate changes, and the
+    last K. Lossless on the curve's grid: the rate holds from one step to the next."""
+    points = sorted((int(k), float(rate)) for k, rate in curve.items())
+    steps = [[k, r] for i, (k, r) in enumerate(points) if i == 0 or r != points[i - 1][1]]
+    if points and steps[-1][0] != points[-1][0]:
+        steps.append(list(points[-1]))
+    return steps
+
+
+def record_evidence(record: Mapping[str, Any]) -> dict[str, Any]:
+    """What a cell's panel shows of a results record."""
+    evidence: dict[str, Any] = {"severity": record.get("severity")}
+    auroc = (record.get("metrics") or {}).get(MATCHED_AUROC)
+    if auroc:
+        evidence[MATCHED_AUROC] = {k: auroc[k] for k in ("mean", "ci_low", "ci_high") if k in auroc}
+    point = record.get(OPERATING_POINT)
+    if point:
+        steps = curve_steps(point.get("detection_curve") or {})
+        kept = {k: v for k, v in point.items() if k != "detection_curve"}
+        evidence[OPERATING_POINT] = kept | {"detection_curve_steps": steps}
+    return evidence
+
+
+def suite_params_hash(
+    params_hashes: Mapping[tuple[str, str], tuple[str | None, ...]], settings: Mapping[str, Any]
+) -> str:
+    """sha256 of every run's params hashes and the leaderboard's own params, as canonical JSON:
+    it changes whenever the params behind a number on the page do."""
+    runs = {f"{e}/{p}": list(hashes) for (e, p), hashes in sorted(params_hashes.items())}
+    text = _compact({"leaderboard": dict(settings), "runs": runs})
+    return "sha256:" + hashlib.sha256(text.encode()).hexdigest()
+
+
+def _cells(inputs: Inputs, board: Board) -> list[dict[str, Any]]:
+    scores: dict[Cell, dict[str, dict[str, float]]] = {}
+    for metric, cells in inputs.cells.items():
+        for cell, values in cells.items():
+            scores.setdefault(Cell(*cell), {})[metric] = {
+                d: _rounded(np.mean(v)) for d, v in values.items()
+            }
+    evidence: dict[Cell, dict[str, Any]] = {}
+    for (cell, detector), record in inputs.records.items():
+        evidence.setdefault(Cell(*cell), {})[detector] = record_evidence(record)
+    order = sorted(
+        scores,
+        key=lambda c: (c.environment, policy_key(c.policy), c.fault, board.tiers.index(c.tier)),
+    )
+    return [
+        {
+            **cell._asdict(),
+            "family": fault_family(cell.fault),
+            "scores": scores[cell],
+            "evidence": evidence.get(cell, {}),
+            "trivially_detected": (cell.environment, cell.fault, cell.tier) in board.flagged,
+        }
+        for cell in order
+    ]
+
+
+def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int) -> dict:
+    """leaderboard.json's content (see the module doc)."""
+    settings = {"ci": ci, "n_boot": n_boot, "seed": seed}
+    cells = _cells(inputs, board)
+    lead = board.overall[board.lead].ranked()
+    detectors = lead + sorted(
+        {d for c in cells for m in c["scores"].values() for d in m} - set(lead)
+    )
+    families = {c["family"] for c in cells}
+    return {
+        "protocol_version": inputs.protocol_version,
+        "params_hash": suite_params_hash(inputs.params_hashes, settings),
+        "leaderboard_params": settings,
+        "runs": [
+            {"environment": e, "policy": p, "params_hashes": list(hashes)}
+            for (e, p), hashes in sorted(
+                inputs.params_hashes.items(), key=lambda r: (r[0][0], policy_key(r[0][1]))
+            )
+        ],
+        "alpha": inputs.alpha,
+        "metrics": list(board.metrics),
+        "metric_labels": {m: metric_label(m, inputs.alpha) for m in board.metrics},
+        "tiers": list(board.tiers),
+        "families": [f for f in (*FAULT_FAMILIES, OTHER_FAMILY) if f in families],
+        "environments": sorted({c["environment"] for c in cells}),
+        "policies": sorted({c["policy"] for c in cells}, key=policy_key),
+        "detectors": detectors,
+        "lead": {"metric": board.lead[0], "tier": board.lead[1]},
+        "iqm": {
+            metric: {
+                tier: {d: a.iqm[d].as_dict() for d in a.detectors}
+                for (m, tier), a in board.overall.items()
+                if m == metric
+            }
+            for metric in board.metrics
+        },
+        "trivial_detectors": [d for d in TRIVIAL_DETECTORS if d in detectors],
+        "uncertified_detectors": list(inputs.uncertified),
+        "cells": cells,
+        "impact": [
+            {"environment": e, "policy": p, "fault": f, **impact}
+            for (e, p, f), impact in sorted(
+                inputs.impact.items(), key=lambda r: (r[0][0], policy_key(r[0][1]), r[0][2])
+            )
+        ],
+    }
+
+
+def _compact(value: Any) -> str:
+    return json.dumps(
+        value, sort_keys=True, ensure_ascii=False, allow_nan=False, separators=(",", ":")
+    )
+
+
+def page_json(data: Mapping[str, Any]) -> str:
+    """leaderboard.json: keys sorted, compact, each cell (and each run, each impact curve) on a
+    line of its own, so a changed number is a one-line diff of a file that stays small."""
+    lines = []
+    for key, value in sorted(data.items()):
+        if isinstance(value, list) and value and isinstance(value[0], dict):
+            value_text = "[\n" + ",\n".join(_compact(item) for item in value) + "\n]"
+        else:
+            value_text = _compact(value)
+        lines.append(f"{_compact(key)}:{value_text}")
+    return "{\n" + ",\n".join(lines) + "\n}\n"
+
+
+def page_html(data: Mapping[str, Any]) -> str:
+    """leaderboard.html: the template with the stamp and leaderboard.json embedded."""
+    version = data["protocol_version"]
+    stamp = f"{version} (unstamped results)" if version == UNSTAMPED_VERSION else str(version)
+    # "<" escaped inside JSON strings, so no "</script>" in the data can end its block.
+    embedded = page_json(data).replace("<", "\\u003c")
+    page = PAGE_TEMPLATE.read_text(encoding="utf-8")
+    for mark, text in zip(
+        MARKS, (html.escape(stamp), html.escape(data["params_hash"]), embedded), strict=True
+    ):
+        page = page.replace(mark, text)
+    return page
