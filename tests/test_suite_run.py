@@ -88,8 +88,11 @@ def test_an_uncommitted_input_is_refused_before_anything_runs(fresh_suite):
     before = locks(fresh_suite)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(fresh_suite)])
     assert result.exit_code == 2
-    progress, error = result.output.splitlines()  # the status checks found what is stale
-    assert progress == "suite: checking 3 projects with dvc status (2 at a time)"
+    *progress, error = result.output.splitlines()  # the status checks found what is stale
+    assert progress == [
+        "suite: 3 projects; checking the DVC remote first",
+        "suite: checking 3 projects with dvc status (2 at a time)",
+    ]
     assert "params.yaml: uncommitted" in error
     assert locks(fresh_suite) == before
 

@@ -111,7 +111,11 @@ def suite_pipelines(root: Path) -> list[str]:
 
     from oodrl.pipeline import SUITE_DIR
 
-    stage = yaml.safe_load((root / SUITE_DIR / "dvc.yaml").read_text())["stages"]["leaderboard"]
+    suite = root / SUITE_DIR / "dvc.yaml"
+    if not suite.is_file():
+        raise ConfigError(f"--root {root}: not an oodrl suite (no {SUITE_DIR}/dvc.yaml); pass the "
+                          "repository's root, where `oodrl pipeline write` put it.")  # fmt: skip
+    stage = yaml.safe_load(suite.read_text())["stages"]["leaderboard"]
     results = [Path(d) for d in stage["deps"] if d.endswith("/reports/results.yaml")]
     runs = {(root / SUITE_DIR / d).resolve().parent.parent.relative_to(root) for d in results}
     return [".", *sorted(r.as_posix() for r in runs)]
@@ -352,8 +356,6 @@ def run_suite(
 def _build_suite(
     root: Path, workers: int, ray_address: str | None, echo: Callable[[str], None], start: float
 ) -> SuiteRun:
-    if ray_address is not None:
-        _check_reachable(ray_address)
     from oodrl.fileio import atomic_write_bytes, atomic_write_text
     from oodrl.pipeline import SUITE_DIR
 
@@ -363,7 +365,12 @@ def _build_suite(
         echo(f"suite: all {len(projects)} projects are up to date (no file DVC checks changed "
              f"since they were found so); nothing to run")  # fmt: skip
         return SuiteRun((), (), time.perf_counter() - start)
-    # The remote and Ray need no `dvc status`: refused in seconds, not after the status checks.
+    # A word at once (importing DVC and asking the remote take seconds), then the remote and
+    # Ray, which need no `dvc status`: refused in seconds, not after the status checks.
+    echo(f"suite: {len(projects)} projects; checking the DVC remote"
+         f"{' and the Ray head' if ray_address is not None else ''} first")  # fmt: skip
+    if ray_address is not None:
+        _check_reachable(ray_address)
     remote = default_remote(root)
     read_only = _check_remote(root, remote) if remote is not None else None
     if ray_address is not None and remote is None:

@@ -90,7 +90,10 @@ def test_a_missing_directory_remote_is_refused_and_not_created(tmp_path):
     before = _files(tmp_path)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
     assert result.exit_code == 1, result.output
-    assert result.output.count("\n") == 1  # the error alone: nothing ran before it
+    # The error alone, after the one line that says what is being checked: nothing ran.
+    assert [line for line in result.output.splitlines() if not line.startswith("suite: ")] == [
+        result.output.splitlines()[-1]
+    ] and result.output.splitlines()[-1].startswith("error: ")
     assert f"DVC remote 'lab': {missing} does not exist; create the directory yourself" in (
         result.output
     )
@@ -123,13 +126,16 @@ def http_server():
 
 
 def test_a_ray_address_that_is_not_ray_is_refused_in_seconds(http_server, tmp_path):
+    repo = tiny_suite(tmp_path / "repo", QUICK)
     began = time.monotonic()
-    result = CliRunner().invoke(
-        app, ["suite", "run", "--root", str(tmp_path), "--ray", http_server]
-    )
+    result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--ray", http_server])
     seconds = time.monotonic() - began
     assert result.exit_code == 1, result.output
-    assert result.output.count("\n") == 1
+    assert (
+        result.output.splitlines()[0]
+        == "suite: 3 projects; checking the DVC remote and the Ray head first"
+    )
+    assert result.output.count("\n") == 2
     assert f"--ray: {http_server} accepts connections but does not answer as a Ray head" in (
         result.output
     )
@@ -181,6 +187,7 @@ def test_ray_without_a_remote_is_refused_before_any_dvc_status(tmp_path, status_
 
 
 def test_a_progress_line_comes_before_the_status_checks(tmp_path, monkeypatch):
+    """A first line before DVC is even imported (finding 7: minutes of silence before)."""
     (tmp_path / "remote").mkdir()
     repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
     lines: list[str] = []
@@ -193,7 +200,10 @@ def test_a_progress_line_comes_before_the_status_checks(tmp_path, monkeypatch):
     monkeypatch.setattr(suite_run, "_up_to_date", up_to_date)
     run_suite(repo, workers=2, echo=lines.append)
     assert len(seen_by_status) == 3
-    assert seen_by_status[0] == ["suite: checking 3 projects with dvc status (2 at a time)"]
+    assert seen_by_status[0] == [
+        "suite: 3 projects; checking the DVC remote first",
+        "suite: checking 3 projects with dvc status (2 at a time)",
+    ]
     assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"
 
 
@@ -236,3 +246,9 @@ def test_a_signal_mid_run_leaves_no_temporary_directory(tmp_path, name):
     assert "Traceback" not in stderr
     assert sorted(path.name for path in scratch.iterdir() if path.name.startswith("oodrl-")) == []
     assert _git(repo, "status", "--porcelain", "--untracked-files=all") == status
+
+
+def test_a_root_that_is_no_suite_is_one_line_and_exit_2(tmp_path):
+    result = CliRunner().invoke(app, ["suite", "run", "--root", str(tmp_path)])
+    assert result.exit_code == 2 and result.output.count("\n") == 1
+    assert "not an oodrl suite (no pipeline/suite/dvc.yaml)" in result.output
