@@ -33,17 +33,9 @@ from oodrl import numerics
 from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import collect
 from oodrl.policies.load import load_policy
+from oodrl.suite import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[1]
-POLICIES = {
-    "LunarLander-v3": "models/policy.pt",
-    "CartPole-v1": "pipeline/cartpole/models/policy.pt",
-    "Acrobot-v1": "pipeline/acrobot/models/policy.pt",
-    "Pendulum-v1": "pipeline/pendulum/models/policy.pt",
-    "LunarLanderContinuous-v3": "pipeline/lunar_lander_continuous/models/policy.pt",
-    "HalfCheetah-v5": "pipeline/half_cheetah/models/policy.pt",
-    "Hopper-v5": "pipeline/hopper/models/policy.pt",
-}
 
 
 class _Clock:
@@ -114,7 +106,7 @@ def _run(env_id: str, policy, step, streams: int, steps: int) -> tuple[_Clock, b
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--envs", nargs="+", default=list(POLICIES))
+    parser.add_argument("--envs", nargs="+", default=list(PIPELINE_DIRS))
     parser.add_argument("--streams", type=int, default=32)
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--repeats", type=int, default=3)
@@ -128,7 +120,7 @@ def main() -> None:
         f"{'new/old':>8s}  same bytes"
     )
     for env_id in args.envs:
-        policy = load_policy(ROOT / POLICIES[env_id])
+        policy = load_policy(policy_path(env_id, ROOT))
         steps = {"old": old_step(policy), "new": policy.act}
         best: dict[str, _Clock] = {}
         digests = {}

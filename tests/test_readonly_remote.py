@@ -18,12 +18,11 @@ import http.server
 import os
 import shutil
 import socket
-import subprocess
-import sys
 import threading
 from pathlib import Path
 
 import pytest
+from tiny_suite import dvc, dvc_project, git
 from typer.testing import CliRunner
 
 from oodrl import suite_run
@@ -32,7 +31,6 @@ from oodrl.suite_run import SuiteRunError, run_suite
 
 pytestmark = pytest.mark.slow
 
-DVC_GITIGNORE = "/config.local\n/tmp\n/cache\n"
 ROOT = """\
   impact:
     foreach: [x, y]
@@ -68,30 +66,6 @@ OUTPUTS = ("data/impact/x.yaml", "data/impact/y.yaml", "reports/results.yaml",
            "pipeline/a/reports/results.yaml", "pipeline/suite/leaderboard.txt")  # fmt: skip
 
 
-def _git(repo: Path, *args: str) -> str:
-    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@localhost",
-           "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@localhost"}  # fmt: skip
-    done = subprocess.run(["git", *args], cwd=repo, env=env, capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    return done.stdout
-
-
-def _dvc(repo: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "dvc", *args]
-    done = subprocess.run(command, cwd=repo, capture_output=True, text=True)
-    assert done.returncode == 0 or not check, done.stderr
-    return done
-
-
-def _project(directory: Path, cache: str | None, stages: str) -> None:
-    """A DVC project (what `dvc init --subdir` and `oodrl pipeline write` leave) with `stages`."""
-    (directory / ".dvc").mkdir(parents=True)
-    cache_section = f"[cache]\n    dir = {cache}\n" if cache else ""
-    (directory / ".dvc" / "config").write_text(f"[core]\n    analytics = false\n{cache_section}")
-    (directory / ".dvc" / ".gitignore").write_text(DVC_GITIGNORE)
-    (directory / "dvc.yaml").write_text(f"stages:\n{stages}")
-
-
 def _listing(directory: Path) -> dict[str, bytes]:
     return {p.relative_to(directory).as_posix(): p.read_bytes() for p in directory.rglob("*")
             if p.is_file()}  # fmt: skip
@@ -103,19 +77,19 @@ def published(tmp_path_factory) -> tuple[Path, Path]:
     that remote (every output and run-cache entry pushed)."""
     lab = tmp_path_factory.mktemp("published")
     repo, remote = lab / "repo", lab / "remote"
-    _project(repo, None, ROOT)
-    _project(repo / "pipeline" / "a", "../../../.dvc/cache", PIPELINE)
+    dvc_project(repo, None, ROOT)
+    dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", PIPELINE)
     (repo / "pipeline" / "a" / "params.yaml").write_text("knob: 1\n")
-    _project(repo / "pipeline" / "suite", "../../../.dvc/cache", LEADERBOARD)
-    _git(repo, "init", "-q")
-    _git(repo, "add", "-A")
-    _git(repo, "commit", "-q", "-m", "a tiny suite")
+    dvc_project(repo / "pipeline" / "suite", "../../../.dvc/cache", LEADERBOARD)
+    git(repo, "init", "-q")
+    git(repo, "add", "-A")
+    git(repo, "commit", "-q", "-m", "a tiny suite")
     remote.mkdir()
-    _dvc(repo, "remote", "add", "--local", "-d", "lab", str(remote))
+    dvc(repo, "remote", "add", "--local", "-d", "lab", str(remote))
     run_suite(repo, workers=2, echo=lambda line: None)
-    _git(repo, "add", "-A")
-    _git(repo, "commit", "-q", "-m", "built")
-    assert not set(OUTPUTS) & set(_git(repo, "ls-files").split())  # DVC's .gitignore came too
+    git(repo, "add", "-A")
+    git(repo, "commit", "-q", "-m", "built")
+    assert not set(OUTPUTS) & set(git(repo, "ls-files").split())  # DVC's .gitignore came too
     return repo, remote
 
 
@@ -143,8 +117,8 @@ def serve():
 
 def clone_with_remote(lab: Path, clone: Path, url: str) -> Path:
     """A fresh clone whose only remote is `url`, the default (the README's way: config.local)."""
-    _git(lab.parent, "clone", "-q", str(lab), str(clone))
-    _dvc(clone, "remote", "add", "--local", "-d", "pub", url)
+    git(lab.parent, "clone", "-q", str(lab), str(clone))
+    dvc(clone, "remote", "add", "--local", "-d", "pub", url)
     return clone
 
 
@@ -168,7 +142,7 @@ def test_a_fresh_clone_restores_the_suite_and_builds_only_a_changed_knob(
     finished = [line for line in lines if line.startswith("finished")]
     assert len(finished) == 2 and all(line.endswith("(0 stages ran)") for line in finished)
     assert lines[-1].endswith("the head ran nothing")
-    assert _git(clone, "status", "--porcelain", "--untracked-files=all") == ""
+    assert git(clone, "status", "--porcelain", "--untracked-files=all") == ""
     assert {path: (clone / path).read_bytes() for path in OUTPUTS} == {
         path: (lab / path).read_bytes() for path in OUTPUTS
     }
@@ -176,13 +150,13 @@ def test_a_fresh_clone_restores_the_suite_and_builds_only_a_changed_knob(
 
     # A knob edit, committed: its stage alone runs (its output is unchanged: not the leaderboard)
     (clone / "pipeline" / "a" / "params.yaml").write_text("knob: 2\n")
-    _git(clone, "commit", "-q", "-am", "knob: 2")
+    git(clone, "commit", "-q", "-am", "knob: 2")
     lines = []
     run = run_suite(clone, workers=2, echo=lines.append)
     assert lines[0].startswith("suite: remote 'pub'") and "pushing nothing" in lines[0]
     assert ran(run) == {".": (), "pipeline/a": ("build",)}
     assert run.head_ran == ()
-    assert _git(clone, "status", "--porcelain") == " M pipeline/a/dvc.lock\n"
+    assert git(clone, "status", "--porcelain") == " M pipeline/a/dvc.lock\n"
     assert _listing(remote) == served
 
 
@@ -199,7 +173,7 @@ def test_what_the_remote_lacks_is_built_locally_and_not_pushed(published, serve,
     run = run_suite(clone, workers=2, echo=lambda line: None)
     assert ran(run) == {".": ("impact@y",), "pipeline/a": ("build",)}
     assert run.head_ran == ()
-    assert _git(clone, "status", "--porcelain", "--untracked-files=all") == ""
+    assert git(clone, "status", "--porcelain", "--untracked-files=all") == ""
     assert {path: (clone / path).read_bytes() for path in OUTPUTS} == {
         path: (lab / path).read_bytes() for path in OUTPUTS
     }
@@ -253,7 +227,7 @@ def test_an_http_remote_that_does_not_answer_is_refused(published, tmp_path):
     assert f"DVC remote 'pub' ({url}) does not answer: [Errno 111] Connection refused" in (
         result.output
     )
-    assert _git(clone, "status", "--porcelain", "--untracked-files=all") == ""
+    assert git(clone, "status", "--porcelain", "--untracked-files=all") == ""
 
 
 def test_ray_with_a_read_only_remote_is_refused(published, serve, tmp_path, monkeypatch):
@@ -281,13 +255,13 @@ def test_dvc_repro_allow_missing_runs_a_stage_on_a_directory_it_never_pulled(
     lab, remote = published
     clone = clone_with_remote(lab, tmp_path / "clone", serve(remote))
     assert sorted(os.listdir(clone / "data" / "impact")) == [".gitignore"]
-    done = _dvc(clone, "repro", "--pull", "--allow-missing", check=False)
+    done = dvc(clone, "repro", "--pull", "--allow-missing", check=False)
     assert done.returncode != 0
     assert "Stage 'impact@x' didn't change, skipping" in done.stdout
     assert "Running stage 'tiers'" in done.stdout
     assert "data/impact/x.yaml: No such file or directory" in done.stderr
 
     fresh = clone_with_remote(lab, tmp_path / "fresh", serve(remote))
-    _dvc(fresh, "pull", "--allow-missing", "-q")
-    done = _dvc(fresh, "repro", "--pull")
+    dvc(fresh, "pull", "--allow-missing", "-q")
+    done = dvc(fresh, "repro", "--pull")
     assert suite_run.ran_stages(done.stdout) == ()

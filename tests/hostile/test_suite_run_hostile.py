@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
+from tiny_suite import dvc, dvc_project, git
 from typer.testing import CliRunner
 
 from oodrl import suite_run
@@ -27,49 +28,26 @@ from oodrl.suite_run import SuiteRunError, run_suite
 QUICK = "mkdir -p reports && echo built > reports/results.yaml"
 #: A stage that marks its start in its clone, then runs long enough to be interrupted.
 SLOW = "mkdir -p reports && touch reports/started && sleep 300 && echo built > reports/results.yaml"
-DVC_GITIGNORE = "/config.local\n/tmp\n/cache\n"
-
-
-def _git(repo: Path, *args: str) -> str:
-    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@localhost",
-           "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@localhost"}  # fmt: skip
-    done = subprocess.run(["git", *args], cwd=repo, env=env, capture_output=True, text=True)
-    assert done.returncode == 0, done.stderr
-    return done.stdout
-
-
-def _dvc(repo: Path, *args: str) -> None:
-    done = subprocess.run([sys.executable, "-m", "dvc", *args], cwd=repo, capture_output=True)
-    assert done.returncode == 0, done.stderr
-
-
-def _project(directory: Path, cache: str | None, stages: str) -> None:
-    """A DVC project (what `dvc init --subdir` and `oodrl pipeline write` leave) with `stages`."""
-    (directory / ".dvc").mkdir(parents=True)
-    cache_section = f"[cache]\n    dir = {cache}\n" if cache else ""
-    (directory / ".dvc" / "config").write_text(f"[core]\n    analytics = false\n{cache_section}")
-    (directory / ".dvc" / ".gitignore").write_text(DVC_GITIGNORE)
-    (directory / "dvc.yaml").write_text(f"stages:\n{stages}")
 
 
 def tiny_suite(repo: Path, command: str) -> Path:
     """The root and pipeline/a, each a stage running `command`, and the leaderboard, committed."""
     build = f"  build:\n    cmd: {command}\n    outs:\n      - reports/results.yaml\n"
-    _project(repo, None, build)
-    _project(repo / "pipeline" / "a", "../../../.dvc/cache", build)
+    dvc_project(repo, None, build)
+    dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", build)
     leaderboard = ("  leaderboard:\n    cmd: cat ../a/reports/results.yaml > leaderboard.txt\n"
                    "    deps:\n      - ../a/reports/results.yaml\n"
                    "    outs:\n      - leaderboard.txt\n")  # fmt: skip
-    _project(repo / "pipeline" / "suite", "../../../.dvc/cache", leaderboard)
-    _git(repo, "init", "-q")
-    _git(repo, "add", "-A")
-    _git(repo, "commit", "-q", "-m", "a tiny suite")
+    dvc_project(repo / "pipeline" / "suite", "../../../.dvc/cache", leaderboard)
+    git(repo, "init", "-q")
+    git(repo, "add", "-A")
+    git(repo, "commit", "-q", "-m", "a tiny suite")
     return repo
 
 
 def with_remote(repo: Path, url: Path) -> Path:
     """The remote as the README says: the root's git-ignored config.local, the default."""
-    _dvc(repo, "remote", "add", "--local", "-d", "lab", str(url))
+    dvc(repo, "remote", "add", "--local", "-d", "lab", str(url))
     return repo
 
 
@@ -223,7 +201,7 @@ def test_a_signal_mid_run_leaves_no_temporary_directory(tmp_path, name):
     repo = with_remote(tiny_suite(tmp_path / "repo", SLOW), tmp_path / "remote")
     scratch = tmp_path / "tmp"
     scratch.mkdir()
-    status = _git(repo, "status", "--porcelain", "--untracked-files=all")
+    status = git(repo, "status", "--porcelain", "--untracked-files=all")
     command = [str(Path(sys.executable).parent / "oodrl"), "suite", "run", "--root", str(repo)]
     process = subprocess.Popen(
         command, env={**os.environ, "TMPDIR": str(scratch)}, stdout=subprocess.PIPE,
@@ -245,7 +223,7 @@ def test_a_signal_mid_run_leaves_no_temporary_directory(tmp_path, name):
     assert process.returncode != 0
     assert "Traceback" not in stderr
     assert sorted(path.name for path in scratch.iterdir() if path.name.startswith("oodrl-")) == []
-    assert _git(repo, "status", "--porcelain", "--untracked-files=all") == status
+    assert git(repo, "status", "--porcelain", "--untracked-files=all") == status
 
 
 def test_a_root_that_is_no_suite_is_one_line_and_exit_2(tmp_path):

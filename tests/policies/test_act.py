@@ -14,18 +14,9 @@ from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import BLOCK_SIZE, collect
 from oodrl.policies.act import ArgmaxPolicy, policy_from_checkpoint
 from oodrl.policies.load import load_policy
+from oodrl.suite import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[2]
-#: Every environment of the suite with its committed policy.
-COMMITTED = {
-    "LunarLander-v3": "models/policy.pt",
-    "CartPole-v1": "pipeline/cartpole/models/policy.pt",
-    "Acrobot-v1": "pipeline/acrobot/models/policy.pt",
-    "Pendulum-v1": "pipeline/pendulum/models/policy.pt",
-    "LunarLanderContinuous-v3": "pipeline/lunar_lander_continuous/models/policy.pt",
-    "HalfCheetah-v5": "pipeline/half_cheetah/models/policy.pt",
-    "Hopper-v5": "pipeline/hopper/models/policy.pt",
-}
 FIELDS = (
     "states",
     "actions",
@@ -48,9 +39,9 @@ def old_step(policy):
     return old
 
 
-@pytest.mark.parametrize("env_id", list(COMMITTED))
+@pytest.mark.parametrize("env_id", list(PIPELINE_DIRS))  # every environment of the suite
 def test_collection_with_the_new_step_equals_the_old_step(env_id):
-    policy = load_policy(ROOT / COMMITTED[env_id])
+    policy = load_policy(policy_path(env_id, ROOT))
     seeds = range(BLOCK_SIZE + 4)  # a full block and a partial one
     new = collect(ENVIRONMENTS.get(env_id)(), policy, seeds, 40)
     old = collect(ENVIRONMENTS.get(env_id)(), old_step(policy), seeds, 40)

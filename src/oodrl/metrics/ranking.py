@@ -172,6 +172,19 @@ def label_ranges(labels: np.ndarray) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
+def _range_inputs(scores, labels, buffer: int) -> tuple[np.ndarray, np.ndarray]:
+    """The scores and labels of one stream as the range-based metrics take them, checked."""
+    scores = np.asarray(scores, dtype=np.float64)
+    labels = np.asarray(labels, dtype=bool)
+    if scores.ndim != 1 or labels.shape != scores.shape:
+        raise ContractError(
+            f"scores and labels must be 1-D of one length; got {scores.shape}, {labels.shape}."
+        )
+    if buffer < 0:
+        raise ContractError(f"buffer must be >= 0; got {buffer}.")
+    return scores, labels
+
+
 def soft_labels(labels: np.ndarray, buffer: int) -> np.ndarray:
     """Range labels of Paparrizos et al. (2022) with a buffer of `buffer` steps.
 
@@ -211,14 +224,7 @@ def temporal_auroc(scores: np.ndarray, labels: np.ndarray, buffer: int = 10) -> 
     Single-class labels and constant scores give 0.5 (the existence factor would otherwise
     credit a constant detector slightly above chance).
     """
-    scores = np.asarray(scores, dtype=np.float64)
-    labels = np.asarray(labels, dtype=bool)
-    if scores.ndim != 1 or labels.shape != scores.shape:
-        raise ContractError(
-            f"scores and labels must be 1-D of one length; got {scores.shape}, {labels.shape}."
-        )
-    if buffer < 0:
-        raise ContractError(f"buffer must be >= 0; got {buffer}.")
+    scores, labels = _range_inputs(scores, labels, buffer)
     soft = soft_labels(labels, buffer)
     n_positive = labels.sum()
     positive_mass = (n_positive + soft.sum()) / 2
@@ -282,14 +288,7 @@ def range_average_precision(scores: np.ndarray, labels: np.ndarray, buffer: int)
     ranges were found. TSB-AD evaluates 250 sub-sampled thresholds; this uses every distinct
     score, so it is exact. No positive step gives 0.0 (as the average precision).
     """
-    scores = np.asarray(scores, dtype=np.float64)
-    labels = np.asarray(labels, dtype=bool)
-    if scores.ndim != 1 or labels.shape != scores.shape:
-        raise ContractError(
-            f"scores and labels must be 1-D of one length; got {scores.shape}, {labels.shape}."
-        )
-    if buffer < 0:
-        raise ContractError(f"buffer must be >= 0; got {buffer}.")
+    scores, labels = _range_inputs(scores, labels, buffer)
     n_positive = int(labels.sum())
     if n_positive == 0:
         return 0.0

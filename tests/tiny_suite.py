@@ -1,0 +1,36 @@
+"""Repositories of the suite's shape at their smallest, for the `oodrl suite run` tests: git and
+DVC run as a user runs them, and DVC projects written as `dvc init --subdir` and `oodrl pipeline
+write` leave them (one-line stages, so building one takes about a second)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+DVC_GITIGNORE = "/config.local\n/tmp\n/cache\n"
+
+
+def git(repo: Path, *args: str) -> str:
+    env = {**os.environ, "GIT_AUTHOR_NAME": "t", "GIT_AUTHOR_EMAIL": "t@localhost",
+           "GIT_COMMITTER_NAME": "t", "GIT_COMMITTER_EMAIL": "t@localhost"}  # fmt: skip
+    done = subprocess.run(["git", *args], cwd=repo, env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    return done.stdout
+
+
+def dvc(repo: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", "dvc", *args]
+    done = subprocess.run(command, cwd=repo, capture_output=True, text=True)
+    assert done.returncode == 0 or not check, done.stderr
+    return done
+
+
+def dvc_project(directory: Path, cache: str | None, stages: str) -> None:
+    """A DVC project (what `dvc init --subdir` and `oodrl pipeline write` leave) with `stages`."""
+    (directory / ".dvc").mkdir(parents=True)
+    cache_section = f"[cache]\n    dir = {cache}\n" if cache else ""
+    (directory / ".dvc" / "config").write_text(f"[core]\n    analytics = false\n{cache_section}")
+    (directory / ".dvc" / ".gitignore").write_text(DVC_GITIGNORE)
+    (directory / "dvc.yaml").write_text(f"stages:\n{stages}")
