@@ -18,7 +18,7 @@ from oodrl.metrics.aggregate import (
 )
 
 N, T, ONSET = 6, 60, 20
-SETTINGS = MetricsConfig(n_boot=200)
+SETTINGS = MetricsConfig(n_boot=200, extra=["vus_pr"])  # every registered metric, opt-in ones too
 
 SPEC_METRICS = {
     "raw_auroc", "raw_auprc", "null_auroc", "null_auprc", "lift_over_null", "adjusted_auroc",

@@ -91,7 +91,8 @@ def test_todays_results_build_the_headline_table_and_reproduce(results, tmp_path
     assert "Protocol version 1 (unstamped results)" in table
     assert "None of them is in the results: no cell is flagged." in table
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
-    assert metrics["iqm.cusum"] > metrics["iqm.pedm"] > metrics["iqm.kde_density"]
+    lead = "matched_auroc.headline.iqm."  # every key names its metric, tier and aggregate
+    assert metrics[f"{lead}cusum"] > metrics[f"{lead}pedm"] > metrics[f"{lead}kde_density"]
     assert (tmp_path / "out" / "leaderboard.png").read_bytes()[:4] == b"\x89PNG"
     first = {p.name: p.read_bytes() for p in (tmp_path / "out").iterdir()}
     run_leaderboard(results, tmp_path / "again", n_boot=200, ci=0.95, seed=0)
@@ -149,7 +150,8 @@ def test_tiers_policies_operating_points_flags_and_mdi(tmp_path: Path):
     assert len(mild["performance_profile"]["taus"]) == 51
     assert mild["stability"]["policies"] == ["0", "1"]
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
-    assert "iqm.cusum" in metrics and "matched_auroc.severe.iqm.cusum" in metrics
+    assert {"detection_rate@100.mild.iqm.cusum", "matched_auroc.severe.iqm.cusum"} <= set(metrics)
+    assert all(len(key.split(".")) >= 4 for key in metrics)  # metric, tier, aggregate, detector
 
 
 def test_mixed_protocol_versions_are_refused_before_anything_is_written(results, tmp_path: Path):

@@ -482,12 +482,12 @@ def board_mapping(
 
 
 def metrics_json(board: Board) -> dict[str, float]:
-    """Figures for `dvc metrics diff`: each detector's IQM and mean. The lead (metric, tier)'s
-    keys are `iqm.<detector>` and `mean.<detector>`; every other's are prefixed
-    `<metric>.<tier>.`."""
+    """Figures for `dvc metrics diff`: each detector's IQM and mean, keyed
+    `<metric>.<tier>.<aggregate>.<detector>`, so that a diff names what each number is (the lead
+    (metric, tier) too; SPEC §21)."""
     flat: dict[str, float] = {}
     for key, overall in board.overall.items():
-        prefix = "" if key == board.lead else f"{key[0]}.{key[1]}."
+        prefix = f"{key[0]}.{key[1]}."
         for d in overall.detectors:
             flat[f"{prefix}iqm.{d}"] = round(overall.iqm[d].value, 6)
             flat[f"{prefix}mean.{d}"] = round(overall.mean[d].value, 6)
