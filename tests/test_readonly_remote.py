@@ -22,7 +22,7 @@ import threading
 from pathlib import Path
 
 import pytest
-from tiny_suite import dvc, dvc_project, git
+from tiny_suite import assert_checking_line_then_the_error, dvc, dvc_project, git
 from typer.testing import CliRunner
 
 from oodrl import suite_run
@@ -137,7 +137,7 @@ def test_a_fresh_clone_restores_the_suite_and_builds_only_a_changed_knob(
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(clone), "--workers", "2"])
     assert result.exit_code == 0, result.output
     lines = result.output.splitlines()
-    assert lines[0] == (f"suite: remote 'pub' ({url}) is read-only (HTTP): restoring from it, "
+    assert lines[1] == (f"suite: remote 'pub' ({url}) is read-only (HTTP): restoring from it, "
                         f"building what it lacks locally, pushing nothing")  # fmt: skip
     finished = [line for line in lines if line.startswith("finished")]
     assert len(finished) == 2 and all(line.endswith("(0 stages ran)") for line in finished)
@@ -153,7 +153,7 @@ def test_a_fresh_clone_restores_the_suite_and_builds_only_a_changed_knob(
     git(clone, "commit", "-q", "-am", "knob: 2")
     lines = []
     run = run_suite(clone, workers=2, echo=lines.append)
-    assert lines[0].startswith("suite: remote 'pub'") and "pushing nothing" in lines[0]
+    assert lines[1].startswith("suite: remote 'pub'") and "pushing nothing" in lines[1]
     assert ran(run) == {".": (), "pipeline/a": ("build",)}
     assert run.head_ran == ()
     assert git(clone, "status", "--porcelain") == " M pipeline/a/dvc.lock\n"
@@ -194,8 +194,8 @@ def test_a_directory_remote_that_refuses_writes_is_read_only(published, tmp_path
     monkeypatch.setattr(LocalFileSystem, "pipe_file", refuse)
     lines: list[str] = []
     run = run_suite(clone, workers=2, echo=lines.append)
-    assert lines[0].startswith(f"suite: remote 'pub' ({remote}) is read-only (it refuses a write")
-    assert lines[0].endswith(": restoring from it, building what it lacks locally, pushing nothing")
+    assert lines[1].startswith(f"suite: remote 'pub' ({remote}) is read-only (it refuses a write")
+    assert lines[1].endswith(": restoring from it, building what it lacks locally, pushing nothing")
     assert ran(run) == {".": (), "pipeline/a": ()}
     assert _listing(remote) == served
 
@@ -223,7 +223,7 @@ def test_an_http_remote_that_does_not_answer_is_refused(published, tmp_path):
     clone = clone_with_remote(published[0], tmp_path / "clone", url)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(clone)])
     assert result.exit_code == 1, result.output
-    assert result.output.count("\n") == 1
+    assert_checking_line_then_the_error(result.output)
     assert f"DVC remote 'pub' ({url}) does not answer: [Errno 111] Connection refused" in (
         result.output
     )
@@ -238,7 +238,7 @@ def test_ray_with_a_read_only_remote_is_refused(published, serve, tmp_path, monk
         app, ["suite", "run", "--root", str(clone), "--ray", "127.0.0.1:6379"]
     )
     assert result.exit_code == 2, result.output
-    assert result.output.count("\n") == 1
+    assert_checking_line_then_the_error(result.output)
     assert "--ray: the nodes share stages through a DVC remote and 'pub' is read-only (HTTP); " in (
         result.output
     )

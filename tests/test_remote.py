@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from suite_repo import checkout, code_env, head_commit, locks, two_environment_suite
+from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
 from oodrl.cli import app
@@ -105,7 +106,7 @@ def test_suite_run_stops_in_one_line_when_the_bucket_does_not_exist(repo_root, s
     before = checkout(repo)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
     assert result.exit_code == 1
-    assert result.output.count("\n") == 1
+    assert_checking_line_then_the_error(result.output)
     # Not a refusal (which would make the remote read-only, tests/test_readonly_remote.py)
     assert "DVC remote 'lab' (s3://no-such-bucket/oodrl) fails a probe write" in result.output
     assert "bucket does not exist" in result.output

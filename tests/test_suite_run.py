@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 from suite_repo import SUITE, checkout, head_commit, locks, serial_suite, two_environment_suite
+from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
 from oodrl.cli import app
@@ -103,7 +104,7 @@ def test_an_unreachable_ray_address_is_one_line_and_changes_nothing(fresh_suite)
         app, ["suite", "run", "--root", str(fresh_suite), "--ray", "127.0.0.1:9"]
     )
     assert result.exit_code == 1
-    assert result.output.count("\n") == 1
+    assert_checking_line_then_the_error(result.output)
     assert "no Ray cluster answers at 127.0.0.1:9" in result.output
     assert checkout(fresh_suite) == before
 

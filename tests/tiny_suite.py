@@ -34,3 +34,12 @@ def dvc_project(directory: Path, cache: str | None, stages: str) -> None:
     (directory / ".dvc" / "config").write_text(f"[core]\n    analytics = false\n{cache_section}")
     (directory / ".dvc" / ".gitignore").write_text(DVC_GITIGNORE)
     (directory / "dvc.yaml").write_text(f"stages:\n{stages}")
+
+
+def assert_checking_line_then_the_error(output: str) -> None:
+    """What a refused `oodrl suite run` prints: the line saying what it checks first, then its
+    one error line (SPEC §22)."""
+    lines = output.splitlines()
+    assert len(lines) == 2 and lines[0].startswith("suite: ") and lines[1].startswith("error: "), (
+        output
+    )
