@@ -162,7 +162,10 @@ def checkout_files(project: Path) -> dict[str, bytes]:
         stages = repo.index.stages
         outs = [(Path(out.fs_path), out.use_cache) for stage in stages for out in stage.outs]
         paths = {Path(stage.dvcfile.path).with_suffix(".lock") for stage in stages}
-        paths |= {path for path, cached in outs if not cached}
+        uncached = [path for path, cached in outs if not cached]
+        # An uncached directory output (a pipeline's reports/tiers) travels file by file.
+        paths |= {f for path in uncached for f in ([path] if path.is_file() else path.rglob("*"))}
+        paths = {path for path in paths if path.is_file()}
         paths |= {ignore for path, _ in outs if (ignore := path.parent / ".gitignore").is_file()}
     return {path.relative_to(project).as_posix(): path.read_bytes() for path in sorted(paths)}
 

@@ -197,8 +197,12 @@ def test_an_interrupted_stage_leaves_its_output_absent_or_complete(sig, delay, w
     time.sleep(delay)
     process.send_signal(sig)
     stdout, stderr = process.communicate(timeout=120)
-    if process.returncode == 0:
-        read_trajectories(workdir / "new.zarr", stage=None)  # finished first: complete
+    if process.returncode in (0, -sig.value):
+        # Finished first; or signalled before oodrl's handler was installed (imports) or while
+        # the interpreter shut down after finishing, when Python's default action applies and
+        # nothing can print: the store is then absent or whole.
+        if process.returncode == 0 or (workdir / "new.zarr").exists():
+            read_trajectories(workdir / "new.zarr", stage=None)
     else:
         done = subprocess.CompletedProcess([], process.returncode, stdout, stderr)
         assert_one_line_error(done, 128 + sig.value, f"interrupted ({sig.name})")
