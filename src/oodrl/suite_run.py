@@ -46,7 +46,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import closing, contextmanager, suppress
 from dataclasses import dataclass, replace
@@ -123,11 +123,18 @@ def suite_pipelines(root: Path) -> list[str]:
 
 # -- one task: one pipeline in its own clone ----------------------------------------------------
 def build_pipeline(
-    bundle: bytes, commit: str, pipeline: str, remote: Remote | None, shared_cache: str | None
+    bundle: bytes,
+    commit: str,
+    pipeline: str,
+    remote: Remote | None,
+    shared_cache: str | None,
+    targets: Mapping[str, Sequence[str]] | None = None,
 ) -> tuple[float, tuple[str, ...], dict[str, bytes]]:
     """Clone `commit` from a git bundle, `dvc repro` the pipeline's project there (pulling what
     the remote has), push its outputs and run-cache to a writable remote; the seconds taken, the
-    stages that ran and the `checkout_files` of the built project.
+    stages that ran and the `checkout_files` of the built project. With `targets`, only the
+    stages `targets[pipeline]` names and what they depend on (`oodrl suite try`): DVC restores
+    an upstream stage whose lock is current from the cache, and builds one that is missing.
 
     The clone is a temporary directory that goes with the task. A task killed with its node
     leaves nothing in the head's checkout; the remote and the cache receive whole objects only
@@ -143,7 +150,8 @@ def build_pipeline(
             _run(project, env, "dvc", "cache", "dir", "--local", shared_cache)
         if remote:  # what the remote has, in one pull (why: the module's docstring)
             _run(project, env, "dvc", "pull", "--allow-missing", "-q")
-        done = _run(project, env, "dvc", "repro", *(["--pull"] if remote else []))
+        chosen = tuple(targets[pipeline]) if targets is not None else ()
+        done = _run(project, env, "dvc", "repro", *(["--pull"] if remote else []), *chosen)
         if remote and remote.writable:
             _push(project, env)
         files = checkout_files(project)
@@ -359,7 +367,7 @@ def run_suite(
 def _build_suite(
     root: Path, workers: int, ray_address: str | None, echo: Callable[[str], None], start: float
 ) -> SuiteRun:
-    from oodrl.fileio import atomic_write_bytes, atomic_write_text
+    from oodrl.fileio import atomic_write_text
     from oodrl.pipeline import SUITE_DIR
 
     pipelines = suite_pipelines(root)
@@ -419,16 +427,7 @@ def _build_suite(
     with closing(building) as tasks, _dvc_config(remote) as env:
 
         def restore(built: PipelineRun) -> float:
-            """The task's locks and uncached outputs written, every other output checked out
-            from the cache (pulled first from a remote): what `dvc repro` would leave, without
-            DVC's per-stage run-cache lookups. `--force` replaces outputs as `dvc repro` does."""
-            began = time.perf_counter()
-            project = root / built.pipeline
-            for name, content in built.files.items():
-                atomic_write_bytes(project / name, content)
-            pull = remote and remote.writable  # else the tasks pulled into the shared cache
-            _run(project, env, "dvc", "pull" if pull else "checkout", "--force", "-q")
-            return time.perf_counter() - began
+            return restore_project(root, built, remote, env)
 
         # Restored as each task ends, while the others run: projects are separate DVC
         # workspaces. A later failure leaves the projects restored so far consistent (each
@@ -447,6 +446,24 @@ def _build_suite(
     echo(f"suite: done in {end - start:.1f} s, {after:.1f} s of them after the last task; "
          f"the head ran {', '.join(head_ran) or 'nothing'}")  # fmt: skip
     return SuiteRun(tuple(runs), tuple(head_ran), end - start, after, leaderboard_seconds)
+
+
+def restore_project(
+    root: Path, built: PipelineRun, remote: Remote | None, env: dict[str, str]
+) -> float:
+    """A task's locks and uncached outputs written into the head's project, every other output
+    checked out from the cache (pulled first from a writable remote): what `dvc repro` would
+    leave, without DVC's per-stage run-cache lookups. `--force` replaces outputs as `dvc repro`
+    does. The seconds it took."""
+    from oodrl.fileio import atomic_write_bytes
+
+    began = time.perf_counter()
+    project = root / built.pipeline
+    for name, content in built.files.items():
+        atomic_write_bytes(project / name, content)
+    pull = remote and remote.writable  # else the tasks pulled into the shared cache
+    _run(project, env, "dvc", "pull" if pull else "checkout", "--force", "-q")
+    return time.perf_counter() - began
 
 
 def _finished(echo, pipeline: str, node: str, built: tuple) -> PipelineRun:
