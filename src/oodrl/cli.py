@@ -692,6 +692,31 @@ def suite_run(
     run_suite(root, workers=workers, ray_address=ray, echo=typer.echo)
 
 
+@command("try", group=suite_app)
+def suite_try(
+    name: Annotated[str, typer.Argument(help="the detector's name in params: detectors.NAME")],
+    class_path: Annotated[
+        str,
+        typer.Option(
+            "--class", help="module:Class, a detector or a class with a library's outlier API"
+        ),
+    ],
+    options: Annotated[
+        list[str] | None, typer.Argument(help="the detector's parameters, KEY=VALUE")
+    ] = None,
+    features: Annotated[
+        str | None, typer.Option(help="what a library detector sees, e.g. state")
+    ] = None,
+    workers: Annotated[int, typer.Option(help="local worker processes, one pipeline each")] = 2,
+    root: RootOption = Path("."),
+) -> None:
+    """Check a detector class against the contract, add it to the suite's params, run only its
+    stages in every pipeline, reproduce the leaderboard and print its ranks (SPEC §21)."""
+    from oodrl.suite_try import try_detector
+
+    try_detector(root, name, class_path, features, options or (), workers=workers, echo=typer.echo)
+
+
 @command("readme-table")
 def readme_table(
     headline: Annotated[Path, typer.Argument()] = Path("reports/headline.md"),
