@@ -359,7 +359,12 @@ def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, 
                 "verdict": "within 0.02" if abs(gap) <= TOLERANCE + 1e-12
                 else f"misses by {gap:+.3f}",
             })  # fmt: skip
-        say(f"  {fault}: {len(reachable)} tiers ({time.perf_counter() - started:.0f} s)")
+        measured = ", ".join(
+            f"{r['tier']} σ {r['severity']:.4g} R̃ {r['normalised']:.3f} "
+            f"[{r['ci'][0]:.3f}, {r['ci'][1]:.3f}] (level {r['level']:g})"
+            for r in rows[-len(reachable) :]
+        )
+        say(f"  {fault}: {measured} ({time.perf_counter() - started:.0f} s)")
     summary = {
         "clean_return": float(clean.mean()),
         "random_return": float(random.mean()),
