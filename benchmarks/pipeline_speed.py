@@ -6,7 +6,8 @@
 In a fresh copy of the repository (committed policies, no outputs):
 1. Per pipeline, its two simulation floors:
    - the project floor: roll out every episode it simulates (ID, clean evaluation and
-     calibration sets, each online injector's headline and sweep sets, the impact curves and
+     held-out calibration, audit and twin sets, each online injector's headline and sweep sets,
+     the impact curves with their tier searches and verifications, and
      the tier sets) with the collector and nothing else — no stores written, no detectors;
    - the physical floor: as many raw `env.step` calls as the project floor simulated
      stream-steps (impact episodes included), with no policy, no fault, no I/O: random valid
@@ -128,7 +129,7 @@ def simulation_floor(pipeline: Path) -> Floor:
     timer, count = _Timer(), _StepCount()
     with timer, count:
         sets = [protocol.id_set(params, policy), protocol.eval_set(params, policy)]
-        sets.append(protocol.calibration_set(params, policy))
+        sets += [protocol.heldout_set(params, which, policy) for which in protocol.HELDOUT_SETS]
     with tempfile.TemporaryDirectory() as tmp:
         id_path, eval_path = Path(tmp) / "id.zarr", Path(tmp) / "eval.zarr"
         write_trajectories(id_path, sets[0])  # live faults' reference statistics; not timed
@@ -143,6 +144,7 @@ def simulation_floor(pipeline: Path) -> Floor:
                 live_injectors(params, faults, id_path),
                 params.tiers.grid,
                 params.tiers.episodes,
+                search=params.tiers.search,
                 seed=params.seed,
                 n_boot=params.metrics.n_boot,
                 ci=params.metrics.ci,

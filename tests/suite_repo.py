@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from oodrl.testing.pipeline import TINY_TIERS
 from oodrl.testing.suite import SUITE, code_env, head_commit, locks, serial_build, suite_copy
 
 PIPELINES = [".", "pipeline/cartpole"]
@@ -20,8 +21,8 @@ def _tiny(params: dict) -> None:
     params["benchmark"] = {"detectors": ["mahalanobis_distance"], "injectors": ["stuck_actuator"]}
     params["metrics"].update(n_boot=20, traces_per_anomaly=1)
     params["executor"]["workers"] = 1
-    if "tiers" in params:  # impact tiers (SPEC §15): the fewest streams alpha = 0.05 allows
-        params["tiers"].update(grid=[0.5, 1.0], episodes=2, n_calibration=19)
+    if "tiers" in params:  # impact tiers (SPEC §15, §19): tiny counts
+        params["tiers"].update(TINY_TIERS)
 
 
 def root_detectors_only(params: dict) -> None:

@@ -118,9 +118,9 @@ BAD = [
     ("eval seeds on ID seeds", _set("data.eval_seed_offset", 29), "data.eval_seed_offset: the"),
     (
         "calibration seeds on eval seeds",
-        _set("tiers.calibration_seed_offset", 10_019),
-        "tiers.calibration_seed_offset: the tier calibration streams (seeds seed + 10019..10057) "
-        "overlap the evaluation streams (seed + 10000..10019)",
+        _set("tiers.calibration_seed_offset", 10_099),
+        "tiers.calibration_seed_offset: the tier calibration streams (seeds seed + 10099..10298) "
+        "overlap the evaluation streams and the tier cells' twins (seed + 10000..10099)",
     ),
     (
         "impact episodes overlap",

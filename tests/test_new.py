@@ -21,7 +21,7 @@ from typer.testing import CliRunner
 from oodrl.cli import app
 from oodrl.config import read_params_data
 from oodrl.new import new_pipeline
-from oodrl.testing.pipeline import copy_project, run
+from oodrl.testing.pipeline import TINY_TIERS, copy_project, run
 
 SECTION = "Benchmark your own agent"
 #: Appended to the README's `oodrl new`: streams of 40 steps, a 2-episode report.
@@ -42,7 +42,7 @@ def tiny_params(repo_root: Path) -> dict:
     params["data"].update(n_id=4, n_ood=3)
     params["anomaly"]["sweep"] = [0.5]
     params["metrics"]["n_boot"] = 20
-    params["tiers"].update(grid=[1.0], episodes=2, n_calibration=19)
+    params["tiers"].update({**TINY_TIERS, "grid": [1.0]})
     params["executor"]["workers"] = 1
     return params
 

@@ -80,7 +80,7 @@ def test_the_protocol_runs_on_every_environment(env_id, tmp_path: Path):
     for detector in params.benchmark.detectors:
         model = tmp_path / "models" / f"{detector}.pkl"
         fit.fit_detector(params, detector, tmp_path / "id.zarr", model)
-        score.score_clean_sets(detector, model, scores, tmp_path / "eval.zarr", None)
+        score.score_clean_sets(detector, model, scores, tmp_path / "eval.zarr", {})
         for injector in params.benchmark.injectors:
             headline, sweep = (tmp_path / kind / f"{injector}.zarr" for kind in ("ood", "sweep"))
             score.score_injector_sets(detector, injector, model, scores, headline, sweep, None)

@@ -33,9 +33,12 @@ TINY = ["--T", "40"]
 INJECTORS = ["gaussian_state_noise", "observation_delay", "stuck_actuator"]
 POSTHOC = INJECTORS[:2]
 #: Stages and detector stages that roll a policy out: a recorded pipeline has none of them.
-SIMULATED = {"train_policy", "impact", "collect_tiers", "collect_calibration", "tier_metrics"}
+SIMULATED = {
+    "train_policy", "impact_reference", "impact", "collect_tiers", "collect_calibration",
+    "collect_audit", "collect_twins", "tier_metrics",
+}  # fmt: skip
 #: Simulated sets a detector file's scoring stages read in a simulated pipeline.
-SIMULATED_SETS = ("data/calibration.zarr", "data/tiers/")
+SIMULATED_SETS = ("data/calibration.zarr", "data/audit.zarr", "data/twins.zarr", "data/tiers/")
 HOPPER = "mujoco/hopper/medium-v0"  # the README's dataset, here a random stand-in
 
 

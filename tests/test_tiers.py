@@ -56,15 +56,19 @@ def test_a_tier_table_cell_with_fewer_than_5_detections_prints_no_delay():
     records = [
         {"detector": name, "injector": "stuck_actuator", "tier": "mild", "severity": 0.2,
          "metrics": {"matched_auroc": {"mean": 0.8}},
-         "operating_point": {"detection_rate": 0.2, "detection_rate_ci": [0.0, 0.5],
+         "operating_point": {"detection_rate": 0.2, "detection_rate_ci": [0.0, 0.5], "n_faulty": 10,
                              "delay": delay}}
         for name, delay in (("a", few), ("b", enough))
     ]  # fmt: skip
+    verification = {"normalised": 0.951, "ci": [0.93, 0.97], "episodes": 100, "verified": True}
     impact = {
         "env_id": "Toy-v0", "n_episodes": 30, "levels": {"mild": 0.95},
+        "search": {"verify_episodes": 100},
         "faults": {"stuck_actuator": {"curve": [{"normalised": 0.9, "severity": 1.0}],
-                                      "tiers": {"mild": {"severity": 0.2, "ci": [0.1, 0.3]}}}},
+                                      "tiers": {"mild": {"severity": 0.2,
+                                                         "verification": verification}}}},
     }  # fmt: skip
     text = tier_tables({"k": 100, "alpha": 0.05, "records": records}, impact)
-    assert "| a | stuck_actuator | 0.200 | 0.20 [0.00, 0.50] | — (n = 3) | 0.800 |" in text
-    assert "| b | stuck_actuator | 0.200 | 0.20 [0.00, 0.50] | 12 (n = 40) | 0.800 |" in text
+    assert "| a | stuck_actuator | 0.2 | 0.20 [0.00, 0.50] (10) | — (n = 3) | 0.800 |" in text
+    assert "| b | stuck_actuator | 0.2 | 0.20 [0.00, 0.50] (10) | 12 (n = 40) | 0.800 |" in text
+    assert "0.2 (R̃ 0.951 [0.930, 0.970])" in text  # the tier, verified where it is read

@@ -264,6 +264,24 @@ def monitor(
     )  # fmt: skip
 
 
+@command("impact-reference")
+def impact_reference(
+    policy: Annotated[Path, PathOption()],
+    out: Annotated[Path, PathOption(help="the clean and random-policy returns (YAML)")],
+    horizon: Annotated[
+        int | None, typer.Option(min=1, help="longest episode (default: the time limit)")
+    ] = None,
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage impact_reference (SPEC §19): π's clean whole-episode returns on every seed the
+    impact stages use and the random policy's, measured once for all faults."""
+    from oodrl.stages.impact import run_impact_reference
+
+    config = _load(params)
+    with _stage("impact_reference"):
+        run_impact_reference(config, policy, out, horizon=horizon)
+
+
 @command("impact")
 def impact(
     policy: Annotated[Path, PathOption()],
@@ -275,6 +293,10 @@ def impact(
     id: Annotated[  # noqa: A002 - the option is --id
         Path | None,
         typer.Option(help="clean ID set: the live observation faults' reference statistics"),
+    ] = None,
+    reference: Annotated[
+        Path | None,
+        typer.Option(help="impact_reference's returns (default: measured here)"),
     ] = None,
     grid: Annotated[
         str | None, typer.Option(help="severities, comma-separated (default: tiers.grid)")
@@ -288,8 +310,9 @@ def impact(
     ] = None,
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Stage impact (SPEC §15): each fault's normalised return over whole episodes on a severity
-    grid, and the severities of the mild, moderate and severe tiers."""
+    """Stage impact (SPEC §15, §19): each fault's normalised return over whole episodes on a
+    severity grid, then the severity of each tier (benign, mild, moderate, severe) searched for
+    where R̃ is measured, and verified on held-out episodes."""
     from oodrl.stages.impact import run_impact
 
     config = _load(params)
@@ -301,7 +324,7 @@ def impact(
         _known(name, config.benchmark.injectors, "benchmark.injectors")
     with _stage(f"impact@{faults[0]}" if faults and len(faults) == 1 else "impact"):
         run_impact(
-            config, policy, out, id_path=id, injectors=faults,
+            config, policy, out, id_path=id, reference_path=reference, injectors=faults,
             grid=severities, n_episodes=episodes or config.tiers.episodes, horizon=horizon,
         )  # fmt: skip
 
@@ -481,18 +504,24 @@ def collect_ood(
         run(config, injector, policy, eval, out)
 
 
-@command("collect-calibration")
-def collect_calibration(
+@command("collect-heldout")
+def collect_heldout(
+    which: Annotated[str, typer.Argument(help="calibration | audit | twins")],
     policy: Annotated[Path, PathOption()],
     out: Annotated[Path, PathOption()],
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Stage collect_calibration: held-out clean streams of the per-stream alarm rule."""
-    from oodrl.stages.collect import collect_calibration as run
+    """Stages collect_calibration, collect_audit, collect_twins: held-out clean streams (SPEC
+    §19) of the per-stream alarm rule (calibration), of its achieved false-alarm rate (audit,
+    used for nothing else), and the clean twins of the tier cells' faulty streams (twins)."""
+    from oodrl.protocol import HELDOUT_SETS
+    from oodrl.stages.collect import collect_heldout as run
 
+    if which not in HELDOUT_SETS:
+        raise ConfigError(f"'{which}' is not a held-out set. Allowed: {', '.join(HELDOUT_SETS)}.")
     config = _load(params)
-    with _stage("collect_calibration"):
-        run(config, policy, out)
+    with _stage(f"collect_{which}"):
+        run(config, which, policy, out)
 
 
 @command("collect-tiers")
@@ -538,33 +567,38 @@ def score(
     injector: Annotated[str | None, typer.Option(help="score this injector's sets")] = None,
     eval: Annotated[Path | None, PathOption()] = None,  # noqa: A002 - the option is --eval
     calibration: Annotated[Path | None, PathOption()] = None,
+    audit: Annotated[Path | None, PathOption()] = None,
+    twins: Annotated[Path | None, PathOption()] = None,
     ood: Annotated[Path | None, PathOption()] = None,
     sweep: Annotated[Path | None, PathOption()] = None,
     tiers: Annotated[Path | None, PathOption()] = None,
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
     """Stages score_clean and score: one detector on the clean sets (--eval, the evaluation set;
-    --calibration, the calibration streams), or on one injector's sets (--injector with --ood,
-    its headline set; --sweep, its sweep; --tiers, its tier streams); one store per set."""
+    --calibration, --audit, --twins, the held-out clean streams), or on one injector's sets
+    (--injector with --ood, its headline set; --sweep, its sweep; --tiers, its tier streams);
+    one store per set."""
     from oodrl.layout import detector_stage
     from oodrl.stages import score as stages
 
     config = _load(params)
     _known(detector, config.benchmark.detectors, "benchmark.detectors")
-    clean = {"--eval": eval, "--calibration": calibration}
+    clean = {"--eval": eval, "--calibration": calibration, "--audit": audit, "--twins": twins}
     faulty = {"--ood": ood, "--sweep": sweep, "--tiers": tiers}
     wanted, unwanted = (clean, faulty) if injector is None else (faulty, clean)
     if not any(wanted.values()) or any(unwanted.values()):
         given = [option for option, path in {**clean, **faulty}.items() if path is not None]
         raise ConfigError(
-            f"score needs any of --eval (clean set) and --calibration (calibration streams), or "
+            f"score needs any of --eval (clean set), --calibration, --audit and --twins (held-out "
+            f"clean streams), or "
             f"--injector with any of --ood (headline set), --sweep (sweep sets) and --tiers "
             f"(tier sets); got {', '.join(given) or 'none'}"
             f"{' with --injector' if injector is not None else ''}."
         )
     if injector is None:
         with _stage(detector_stage(detector, "score_clean")):
-            stages.score_clean_sets(detector, model, scores, eval, calibration)
+            heldout = {"calibration": calibration, "audit": audit, "twins": twins}
+            stages.score_clean_sets(detector, model, scores, eval, heldout)
         return
     _known(injector, config.benchmark.injectors, "benchmark.injectors")
     with _stage(detector_stage(detector, "score", injector)):

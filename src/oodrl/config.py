@@ -30,6 +30,10 @@ DEFAULT_PARAMS = Path("params.yaml")
 #: not params; `oodrl check-params` keeps every params-set range of streams clear of them.
 POLICY_SEED_OFFSET = 500_000
 RANDOM_SEED_OFFSET = 600_000
+#: The tier search's probes (SPEC §19) at seed + SEARCH_SEED_OFFSET + j, its verifications at
+#: seed + VERIFY_SEED_OFFSET + j: fresh seeds for every probe, held out from every probe.
+SEARCH_SEED_OFFSET = 700_000
+VERIFY_SEED_OFFSET = 800_000
 #: Registered metrics computed only where `metrics.extra` names them (`oodrl.metrics`): added
 #: after the paper's results were written, so the root's results.yaml keeps its records. Here,
 #: not in `oodrl.metrics`, so that loading params never imports the metrics' code (which would
@@ -102,29 +106,42 @@ class MetricsConfig(_Section):
         return extra
 
 
-class TiersConfig(_Section):
-    """The `tiers` block (SPEC §15): impact calibration, the tiers' detection streams and the
-    per-stream operating point. Each fault's impact curve is measured on `grid` over `episodes`
-    whole episodes (π and the random policy each); the per-stream alarm rule is calibrated on
-    `n_calibration` held-out clean streams (seeds `seed + calibration_seed_offset + j`) at
-    false-alarm budget `alpha` by `threshold_rule` (`episode_max`: marginal, E[FAR] ≤ α;
-    `episode_max_conditional`: P(FAR > α) ≤ `delta` over calibration draws, SPEC §19);
-    `detection_rate@K` counts first alarms within `k` steps of the onset.
+class TierSearchConfig(_Section):
+    """The `tiers.search` block (SPEC §19, `oodrl.impact.search_tier`): each tier's severity is
+    probed, `probe_episodes` fresh whole episodes a probe, at most `max_probes` times, until R̃
+    at the probed severity is within `tolerance` of the tier's level; then re-measured on
+    `verify_episodes` held-out episodes (the verification)."""
 
-    `threshold_rule` and `delta` came after results were stamped: at their defaults they are
-    left out of the resolved params (`exclude_if`), so the params hash of every results file
-    written before them stays the same."""
+    tolerance: float = Field(0.015, gt=0, lt=1)
+    probe_episodes: int = Field(50, ge=2)
+    max_probes: int = Field(4, ge=1)
+    verify_episodes: int = Field(100, ge=2)
+
+
+class TiersConfig(_Section):
+    """The `tiers` block (SPEC §15, §19): impact calibration, the tiers' detection streams and
+    the per-stream operating point. Each fault's coarse impact curve is measured on `grid` over
+    `episodes` whole episodes (π and the random policy each) and each tier is then searched for
+    (`search`); every (fault, tier) cell has `n_streams` faulty streams, twins of as many clean
+    ones. The per-stream alarm rule is calibrated on `n_calibration` held-out clean streams
+    (seeds `seed + calibration_seed_offset + j`) at false-alarm budget `alpha` by
+    `threshold_rule` (`episode_max_conditional`: P(FAR > α) ≤ `delta` over calibration draws;
+    `episode_max`: marginal, E[FAR] ≤ α), and its achieved false-alarm rate measured on
+    `n_audit` more (seeds `seed + audit_seed_offset + j`), used for nothing else.
+    `detection_rate@K` counts first alarms within `k` steps of the onset."""
 
     grid: list[float] = Field(default_factory=lambda: [round(0.1 * i, 1) for i in range(1, 11)])
     episodes: int = Field(30, ge=2)
-    n_calibration: int = Field(39, ge=1)
+    search: TierSearchConfig = TierSearchConfig()
+    n_streams: int = Field(100, ge=1)
+    n_calibration: int = Field(200, ge=1)
     calibration_seed_offset: int = Field(20_000, ge=1)
+    n_audit: int = Field(200, ge=1)
+    audit_seed_offset: int = Field(30_000, ge=1)
     alpha: float = Field(0.05, gt=0, lt=1)
     k: int = Field(100, ge=0)
-    threshold_rule: Literal["episode_max", "episode_max_conditional"] = Field(
-        "episode_max", exclude_if=lambda rule: rule == "episode_max"
-    )
-    delta: float = Field(0.1, gt=0, lt=1, exclude_if=lambda delta: delta == 0.1)
+    threshold_rule: Literal["episode_max", "episode_max_conditional"] = "episode_max_conditional"
+    delta: float = Field(0.1, gt=0, lt=1)
 
 
 class ExecutorConfig(_Section):

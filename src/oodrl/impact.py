@@ -41,14 +41,20 @@ first step's fault with the first step's impact.
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from oodrl.config import POLICY_SEED_OFFSET, RANDOM_SEED_OFFSET
+from oodrl.config import (
+    POLICY_SEED_OFFSET,
+    RANDOM_SEED_OFFSET,
+    SEARCH_SEED_OFFSET,
+    VERIFY_SEED_OFFSET,
+    TierSearchConfig,
+)
 from oodrl.core.adapter import EnvironmentAdapter
 from oodrl.core.injector import OnlineInjector
 from oodrl.core.policy import Policy
@@ -57,8 +63,10 @@ from oodrl.errors import ConfigError, ContractError
 if TYPE_CHECKING:
     from oodrl.config import Params
 
-#: The tiers: the normalised return R̃ at which each begins (SPEC §15).
-LEVELS = {"mild": 0.95, "moderate": 0.90, "severe": 0.75}
+#: The tiers: the normalised return R̃ at which each begins (SPEC §15, §19). `benign` is the
+#: harmless-shift control: a shift that costs the agent 1% of its return, on which an alarm is a
+#: cost (Anomaly-Gym's "tiny" level, 0.99).
+LEVELS = {"benign": 0.99, "mild": 0.95, "moderate": 0.90, "severe": 0.75}
 #: A stepped fault's `severe` step keeps R̃ ≥ this: a step that costs more than half the return
 #: is beyond the tiers (ANOMRL's lowest calibration level; the RIQN benchmark leaves out faults
 #: that make the agent fail at once).
@@ -134,13 +142,15 @@ def policy_seeds(seed: int, n_episodes: int) -> list[int]:
 
 def clean_returns(
     adapter: EnvironmentAdapter, policy: Policy, n_episodes: int, *, seed: int, horizon: int,
-    workers: int = 1,
+    workers: int = 1, seeds: Sequence[int] | None = None,
 ) -> np.ndarray:  # fmt: skip
-    """Whole-episode returns of π without a fault."""
+    """Whole-episode returns of π without a fault (on `seeds`, else π's impact seeds)."""
     from oodrl.envs.collect import collect
 
-    seeds = policy_seeds(seed, n_episodes)
-    tset = collect(adapter, policy, seeds, horizon, policy_seed=seed, workers=workers)
+    seeds = list(seeds) if seeds is not None else policy_seeds(seed, n_episodes)
+    tset = collect(
+        adapter, policy, seeds, horizon, policy_seed=seed, workers=workers, first_episode=True
+    )
     return first_episode_returns(tset)
 
 
@@ -154,15 +164,21 @@ def faulty_returns(
     seed: int,
     horizon: int,
     workers: int = 1,
+    seeds: Sequence[int] | None = None,
 ) -> dict[float, np.ndarray]:
-    """Whole-episode returns of π under `injector` at each severity, active from step 0."""
+    """Whole-episode returns of π under `injector` at each severity, active from step 0, on
+    π's impact seeds (stream j's fault draws from `injector_rng(seed, name, j)`), or on `seeds`
+    (a probe's: its faults draw from `injector_rng(seeds[0], name, j)`, so no two probes share
+    a fault's noise)."""
     from oodrl.injectors.apply import collect_online_sets
 
-    seeds = policy_seeds(seed, n_episodes)
+    fault_seed = seed if seeds is None else int(seeds[0])
+    seeds = list(seeds) if seeds is not None else policy_seeds(seed, n_episodes)
     specs = [injector.spec(float(s), 0) for s in severities]
     sets = collect_online_sets(
-        injector, adapter, policy, seeds, horizon, specs, seed, policy_seed=seed, workers=workers
-    )
+        injector, adapter, policy, seeds, horizon, specs, fault_seed, policy_seed=seed,
+        workers=workers, first_episode=True,
+    )  # fmt: skip
     return {float(s): first_episode_returns(t) for s, t in zip(severities, sets, strict=True)}
 
 
@@ -173,7 +189,9 @@ def random_policy_returns(
     from oodrl.envs.collect import collect
 
     seeds = [seed + RANDOM_SEED_OFFSET + j for j in range(n_episodes)]
-    tset = collect(adapter, UniformRandomPolicy(adapter), seeds, horizon, policy_seed=seed)
+    tset = collect(
+        adapter, UniformRandomPolicy(adapter), seeds, horizon, policy_seed=seed, first_episode=True
+    )
     return first_episode_returns(tset)
 
 
@@ -287,8 +305,9 @@ def impact_record(
     seed: int = 0,
     stepped: bool = False,
 ) -> dict[str, Any]:
-    """The impact curve (raw and monotone, with bootstrap CIs) and the tiers, as YAML holds it;
-    `stepped`: the severities are a stepped fault's steps (module docstring)."""
+    """The coarse impact curve (raw and monotone, with bootstrap CIs) and the tiers read on it
+    (where the search starts, `searched_tiers`), as YAML holds it; `stepped`: the severities
+    are a stepped fault's steps (module docstring)."""
     severities = sorted(returns.faulty)
     if not severities or severities[0] <= 0:
         raise ConfigError(f"The severity grid must be positive severities; got {severities}.")
@@ -313,23 +332,11 @@ def impact_record(
     ).T
     tail = (1 - ci) / 2
     low, high = np.quantile(replicates, [tail, 1 - tail], axis=0)
-    replicate_tiers = {name: [] for name in levels}
-    for row in replicates:
-        row_curve = monotone_curve(xs, [1.0, *row])
-        for name, value in tier_severities(xs, row_curve, levels, stepped).items():
-            replicate_tiers[name].append(math.inf if value is None else value)
-    tiers = {}
-    for name, value in tier_severities(xs, monotone, levels, stepped).items():
-        ordered = np.sort(replicate_tiers[name])
-        bounds = (
-            ordered[int(math.floor(tail * n_boot))],
-            ordered[math.ceil((1 - tail) * n_boot) - 1],
-        )
-        tiers[name] = {
-            "level": levels[name],
-            "severity": _rounded(value),
-            "ci": [_rounded(None if math.isinf(b) else b) for b in bounds],
-        }
+    # The coarse read: where the tier search starts (`searched_tiers`), never a tier itself.
+    tiers = {
+        name: {"level": levels[name], "severity": _rounded(value)}
+        for name, value in tier_severities(xs, monotone, levels, stepped).items()
+    }
     curve = [
         {
             "severity": float(s),
@@ -344,6 +351,237 @@ def impact_record(
     # (LunarLander's dynamics faults: rewards that do not telescope, docs/SPEC.md §15).
     above = [float(s) for i, s in enumerate(severities) if low[i] > 1.0]
     return {"curve": curve, "tiers": tiers, "return_above_clean": above}
+
+
+@dataclass(frozen=True)
+class Reference:
+    """π's clean whole-episode returns by reset seed (every seed the coarse curve, the tier
+    search and the verification use) and the random policy's returns: one measurement per
+    (environment, policy), shared by every fault's impact stage."""
+
+    clean: dict[int, float]
+    random: np.ndarray
+    policy_sha256: str
+
+    def returns(self, seeds: Sequence[int]) -> np.ndarray:
+        return np.array([self.clean[int(s)] for s in seeds], dtype=np.float64)
+
+    def as_dict(self) -> dict[str, Any]:
+        seeds = sorted(self.clean)
+        return {
+            "policy_sha256": self.policy_sha256,
+            "clean": {"seeds": seeds, "returns": [self.clean[s] for s in seeds]},
+            "random": [float(r) for r in self.random],
+        }
+
+    @classmethod
+    def from_dict(cls, document: Mapping[str, Any]) -> Reference:
+        clean = document["clean"]
+        return cls(
+            {int(s): float(r) for s, r in zip(clean["seeds"], clean["returns"], strict=True)},
+            np.asarray(document["random"], dtype=np.float64),
+            str(document["policy_sha256"]),
+        )
+
+
+def search_seeds(seed: int, search: TierSearchConfig, tier_index: int, probe: int) -> list[int]:
+    """The fresh reset seeds of one probe of the tier search: probe p of the i-th tier."""
+    first = (
+        seed
+        + SEARCH_SEED_OFFSET
+        + (tier_index * search.max_probes + probe) * (search.probe_episodes)
+    )
+    return list(range(first, first + search.probe_episodes))
+
+
+def verify_seeds(seed: int, search: TierSearchConfig) -> list[int]:
+    """The held-out reset seeds of every tier's verification (no probe ever uses them)."""
+    first = seed + VERIFY_SEED_OFFSET
+    return list(range(first, first + search.verify_episodes))
+
+
+def reference_seeds(seed: int, n_episodes: int, search: TierSearchConfig) -> list[int]:
+    """Every reset seed whose clean return an impact stage reads: the coarse curve's, every
+    probe's that any tier may run, and the verification's."""
+    probes = [
+        s
+        for tier_index in range(len(LEVELS))
+        for probe in range(search.max_probes)
+        for s in search_seeds(seed, search, tier_index, probe)
+    ]
+    return [*policy_seeds(seed, n_episodes), *probes, *verify_seeds(seed, search)]
+
+
+def measure_reference(
+    adapter: EnvironmentAdapter,
+    policy: Policy,
+    n_episodes: int,
+    search: TierSearchConfig,
+    *,
+    seed: int,
+    horizon: int,
+    workers: int = 1,
+) -> Reference:
+    """π's clean returns on every seed of `reference_seeds` (one collection) and the random
+    policy's on `n_episodes` seeds of its own."""
+    seeds = reference_seeds(seed, n_episodes, search)
+    clean = clean_returns(
+        adapter, policy, len(seeds), seed=seed, horizon=horizon, workers=workers, seeds=seeds
+    )
+    random = random_policy_returns(adapter, n_episodes, seed=seed, horizon=horizon)
+    return Reference(
+        {s: float(r) for s, r in zip(seeds, clean, strict=True)}, random, policy.sha256
+    )
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """R̃ at one severity from paired episodes, with its percentile-bootstrap CI."""
+
+    severity: float
+    normalised: float
+    ci: tuple[float, float]
+    episodes: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "severity": _rounded(self.severity),
+            "normalised": _rounded(self.normalised),
+            "ci": [_rounded(self.ci[0]), _rounded(self.ci[1])],
+            "episodes": self.episodes,
+        }
+
+
+def paired_estimate(
+    severity: float,
+    faulty: np.ndarray,
+    paired_clean: np.ndarray,
+    reference: Reference,
+    *,
+    n_boot: int,
+    ci: float,
+    seed: int,
+) -> Estimate:
+    """R̃(σ) = 1 − mean(C_j − F_j) / (mean C − mean R_rand): the return lost on each episode
+    against π's clean episode from the same reset seed (paired, so the start state's luck
+    cancels), over the gap between π's pooled clean returns and the random policy's. The CI
+    resamples the pairs, the clean pool and the random episodes independently."""
+    pool, random = np.array(list(reference.clean.values())), reference.random
+    loss = paired_clean - faulty
+    rng = np.random.default_rng(seed)
+    pairs = rng.integers(0, loss.size, size=(n_boot, loss.size))
+    pooled = rng.integers(0, pool.size, size=(n_boot, pool.size))
+    randoms = rng.integers(0, random.size, size=(n_boot, random.size))
+    replicates = 1.0 - loss[pairs].mean(axis=1) / (
+        pool[pooled].mean(axis=1) - random[randoms].mean(axis=1)
+    )
+    tail = (1 - ci) / 2
+    low, high = np.quantile(replicates, [tail, 1 - tail])
+    value = 1.0 - loss.mean() / (pool.mean() - random.mean())
+    return Estimate(float(severity), float(value), (float(low), float(high)), int(loss.size))
+
+
+def _on_target(estimate: Estimate, level: float, tolerance: float) -> bool:
+    return abs(estimate.normalised - level) <= tolerance
+
+
+def _verified(estimate: Estimate, level: float, floor: float, tolerance: float, stepped: bool):
+    """A continuous tier's verification holds when R̃ there is within the tolerance of its
+    level or its CI covers the level; a stepped tier's, when its CI meets the tier's band
+    [the next tier's level (SEVERE_FLOOR after severe), its own level]."""
+    low, high = estimate.ci
+    if stepped:
+        return bool(low <= level + tolerance and high >= floor - tolerance)
+    return bool(_on_target(estimate, level, tolerance) or low <= level <= high)
+
+
+def search_tier(
+    level: float,
+    xs: Sequence[float],
+    monotone: Sequence[float],
+    measure: Callable[[float, int], Estimate],
+    search: TierSearchConfig,
+) -> tuple[float | None, list[Estimate], bool]:
+    """The severity of one tier of a continuous fault (SPEC §19): bracket the level on the
+    coarse monotone curve (σ = 0, R̃ = 1 included, so a level crossed before the first grid
+    point is bracketed by [0, first point]), then probe inside the bracket by safeguarded
+    regula falsi (the probe lands between 10% and 90% of the bracket), each probe measured on
+    fresh episodes (`measure(σ, probe index)`), narrowing the bracket on the side the probe
+    falls, until a probe's R̃ is within the tolerance of the level or the probes run out.
+
+    Returns (σ, probes, converged): σ is a probed severity, where R̃ was measured (the first
+    on target, else the closest to the level); None when the curve never reaches the level.
+    """
+    xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(monotone, dtype=np.float64)
+    below = np.flatnonzero(ys <= level)
+    if below.size == 0:
+        return None, [], False
+    i = max(int(below[0]), 1)
+    lo, y_lo, hi, y_hi = xs[i - 1], ys[i - 1], xs[i], ys[i]
+    probes: list[Estimate] = []
+    for probe in range(search.max_probes):
+        fraction = (y_lo - level) / (y_lo - y_hi) if y_lo > y_hi else 0.5
+        severity = round(float(lo + min(max(fraction, 0.1), 0.9) * (hi - lo)), 6)
+        estimate = measure(severity, probe)
+        probes.append(estimate)
+        if _on_target(estimate, level, search.tolerance):
+            return severity, probes, True
+        if estimate.normalised > level:
+            lo, y_lo = severity, min(estimate.normalised, y_lo)
+        else:
+            hi, y_hi = severity, max(estimate.normalised, y_hi)
+    closest = min(probes, key=lambda e: (abs(e.normalised - level), e.severity))
+    return closest.severity, probes, False
+
+
+def _tier_floor(name: str, levels: Mapping[str, float]) -> float:
+    later = [lvl for lvl in sorted(levels.values(), reverse=True) if lvl < levels[name]]
+    return later[0] if later else SEVERE_FLOOR
+
+
+def searched_tiers(
+    coarse: Mapping[str, Any],
+    xs: Sequence[float],
+    monotone: Sequence[float],
+    measure: Callable[[float, Sequence[int]], Estimate],
+    search: TierSearchConfig,
+    *,
+    seed: int,
+    stepped: bool,
+    levels: Mapping[str, float] = LEVELS,
+) -> dict[str, Any]:
+    """Every tier of one fault, measured where it is read (SPEC §19), with its verification.
+
+    A continuous fault's tier comes from `search_tier`; a stepped fault's is the step its
+    coarse curve gives (`coarse`: `tier_severities` on the monotone curve), since every σ of a
+    step is the same fault. Either is then re-measured on the held-out verification seeds;
+    `verified` says whether that measurement agrees with the tier (`_verified`)."""
+    tiers: dict[str, Any] = {}
+    for index, (name, level) in enumerate(levels.items()):
+        record: dict[str, Any] = {"level": level}
+        if stepped:
+            severity, probes, converged = coarse[name], [], None
+        else:
+            severity, probes, converged = search_tier(
+                level, xs, monotone,
+                lambda s, p, index=index: measure(s, search_seeds(seed, search, index, p)),
+                search,
+            )  # fmt: skip
+        record["severity"] = _rounded(severity)
+        if severity is not None:
+            verification = measure(severity, verify_seeds(seed, search))
+            floor = _tier_floor(name, levels)
+            record["verification"] = {
+                **verification.as_dict(),
+                "verified": _verified(verification, level, floor, search.tolerance, stepped),
+            }
+            if not stepped:
+                record["search"] = {
+                    "converged": converged,
+                    "probes": [p.as_dict() for p in probes],
+                }
+        tiers[name] = record
+    return tiers
 
 
 def minimum_detectable_impact(
@@ -434,18 +672,37 @@ def calibrate_impact(
     severities: Sequence[float],
     n_episodes: int,
     *,
+    search: TierSearchConfig | None = None,
+    reference: Reference | None = None,
     seed: int = 0,
     horizon: int | None = None,
     n_boot: int = 1000,
     ci: float = 0.95,
     workers: int = 1,
 ) -> dict[str, Any]:
-    """The impact document of one (environment, policy): every fault's curve and tiers."""
+    """The impact document of one (environment, policy): every fault's coarse curve and its
+    tiers, each searched for and verified (SPEC §19). `reference`: π's clean returns on every
+    seed used and the random policy's (`measure_reference`; measured here when not given)."""
     if n_episodes < 2:
         raise ConfigError(f"Impact calibration needs n_episodes >= 2; got {n_episodes}.")
+    search = search or TierSearchConfig()
     horizon = horizon or episode_limit(adapter)
-    random = random_policy_returns(adapter, n_episodes, seed=seed, horizon=horizon)
-    clean = clean_returns(adapter, policy, n_episodes, seed=seed, horizon=horizon, workers=workers)
+    if reference is None:
+        reference = measure_reference(
+            adapter, policy, n_episodes, search, seed=seed, horizon=horizon, workers=workers
+        )
+    if reference.policy_sha256 != policy.sha256:
+        raise ContractError(
+            f"The impact reference was measured with policy {reference.policy_sha256[:12]}, "
+            f"not this one ({policy.sha256[:12]}); re-run its stage (impact_reference)."
+        )
+    missing = sorted(set(reference_seeds(seed, n_episodes, search)) - set(reference.clean))
+    if missing:
+        raise ContractError(
+            f"The impact reference holds no clean return of {len(missing)} seeds this search "
+            f"uses (first {missing[0]}); re-run its stage (impact_reference) with these params."
+        )
+    clean, random = reference.returns(policy_seeds(seed, n_episodes)), reference.random
     faults = {}
     for name in sorted(injectors):
         injector = injectors[name]
@@ -457,6 +714,25 @@ def calibrate_impact(
         record = impact_record(
             Returns(clean, faulty, random), n_boot=n_boot, ci=ci, seed=seed, stepped=bool(steps)
         )
+
+        def measure(severity: float, seeds: Sequence[int], injector=injector) -> Estimate:
+            returns = faulty_returns(
+                adapter, policy, injector, [severity], len(seeds), seed=seed, horizon=horizon,
+                workers=workers, seeds=seeds,
+            )[float(severity)]  # fmt: skip
+            return paired_estimate(
+                severity, returns, reference.returns(seeds), reference,
+                n_boot=n_boot, ci=ci, seed=seed,
+            )  # fmt: skip
+
+        xs, ys = impact_curve_points(record)
+        coarse = {
+            n: None if t["severity"] == UNREACHABLE else t["severity"]
+            for n, t in record["tiers"].items()
+        }
+        record["tiers"] = searched_tiers(
+            coarse, xs, ys, measure, search, seed=seed, stepped=bool(steps)
+        )
         faults[name] = {
             **record,
             "mode": injector.mode,
@@ -464,6 +740,8 @@ def calibrate_impact(
             **({"severity_steps": steps} if steps else {}),
         }
     n = n_episodes
+    probes = reference_seeds(seed, n, search)[n : -search.verify_episodes]
+    verify = verify_seeds(seed, search)
     return {
         "env_id": adapter.env_id,
         "policy_sha256": policy.sha256,
@@ -473,9 +751,12 @@ def calibrate_impact(
         "n_boot": n_boot,
         "ci": ci,
         "seed": seed,
+        "search": search.model_dump(mode="json"),
         "seeds": {
             "policy": [seed + POLICY_SEED_OFFSET, seed + POLICY_SEED_OFFSET + n - 1],
             "random": [seed + RANDOM_SEED_OFFSET, seed + RANDOM_SEED_OFFSET + n - 1],
+            "search": [probes[0], probes[-1]],
+            "verification": [verify[0], verify[-1]],
         },
         "clean_return": _rounded(clean.mean()),
         "random_return": _rounded(random.mean()),

@@ -45,6 +45,12 @@ def tier_score_store(scores_dir: Path, detector: str, fault: str) -> Path:
     return Path(scores_dir) / detector / "tiers" / f"{fault}.zarr"
 
 
+def heldout_score_store(scores_dir: Path, detector: str, which: str) -> Path:
+    """`detector`'s scores of a held-out clean set (`oodrl.protocol.HELDOUT_SETS`: the
+    per-stream alarm rule's calibration streams, the audit streams, the tier cells' twins)."""
+    return Path(scores_dir) / detector / f"{which}.zarr"
+
+
 def calibration_score_store(scores_dir: Path, detector: str) -> Path:
     """`detector`'s scores of the clean calibration streams (the per-stream alarm rule's)."""
-    return Path(scores_dir) / detector / "calibration.zarr"
+    return heldout_score_store(scores_dir, detector, "calibration")

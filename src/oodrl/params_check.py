@@ -60,17 +60,29 @@ def _check_seed_ranges(params: Params) -> None:
     """Each set of streams on seeds of its own (offsets from `seed`): an overlap would replay
     one set's episodes as another's (an evaluation stream fitted on, a calibration stream
     that is an evaluation stream's twin)."""
-    from oodrl.config import POLICY_SEED_OFFSET, RANDOM_SEED_OFFSET
+    from oodrl.config import (
+        POLICY_SEED_OFFSET,
+        RANDOM_SEED_OFFSET,
+        SEARCH_SEED_OFFSET,
+        VERIFY_SEED_OFFSET,
+    )
+    from oodrl.impact import LEVELS
 
-    data, tiers = params.data, params.tiers
+    data, tiers, search = params.data, params.tiers, params.tiers.search
+    probes = len(LEVELS) * search.max_probes * search.probe_episodes
     # (the key to change when the range overlaps an earlier one, its streams, first seed, count)
     sets = [
         ("data.n_id", "ID streams", 0, data.n_id),
         ("tiers.episodes", "policy's impact episodes", POLICY_SEED_OFFSET, tiers.episodes),
         ("tiers.episodes", "random policy's impact episodes", RANDOM_SEED_OFFSET, tiers.episodes),
-        ("data.eval_seed_offset", "evaluation streams", data.eval_seed_offset, data.n_ood),
+        ("tiers.search", "tier search's episodes", SEARCH_SEED_OFFSET, probes),
+        ("tiers.search.verify_episodes", "tier verification's episodes", VERIFY_SEED_OFFSET,
+         search.verify_episodes),
+        ("data.eval_seed_offset", "evaluation streams and the tier cells' twins",
+         data.eval_seed_offset, max(data.n_ood, tiers.n_streams)),
         ("tiers.calibration_seed_offset", "tier calibration streams",
          tiers.calibration_seed_offset, tiers.n_calibration),
+        ("tiers.audit_seed_offset", "audit streams", tiers.audit_seed_offset, tiers.n_audit),
     ]  # fmt: skip
     ranges = [(key, what, range(first, first + count)) for key, what, first, count in sets]
     for i, (key, what, seeds) in enumerate(ranges):

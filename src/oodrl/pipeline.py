@@ -63,7 +63,8 @@ VERB_COMPONENTS: dict[str, tuple[str, ...]] = {
     "collect-ood": ("injector", "environment"),
     "collect-id": ("environment",),
     "collect-eval": ("environment",),
-    "collect-calibration": ("environment",),
+    "collect-heldout": ("environment",),
+    "impact-reference": ("environment",),
     "collect-tiers": ("injector", "environment"),
     "impact": ("injector", "environment"),
     "tier-metrics": ("detectors",),  # every benchmark detector, built for its latency

@@ -4,8 +4,10 @@ fit/calibration split of the ID set, and the trajectory sets the collection stag
 ID streams use seeds `seed + i`; evaluation streams `seed + eval_seed_offset + j`, so the two
 never share a seed. Every perturbed set re-uses the evaluation seeds: its episodes are the
 matched counterparts of the clean evaluation set's. The clean calibration streams of the
-per-stream alarm rule (SPEC §15) use `seed + tiers.calibration_seed_offset + j`; impact
-calibration has seed ranges of its own (`oodrl.impact`).
+per-stream alarm rule (SPEC §15) use `seed + tiers.calibration_seed_offset + j`, the audit
+streams (SPEC §19) `seed + tiers.audit_seed_offset + j`; the tier cells' streams and their clean
+twins are the first `tiers.n_streams` evaluation seeds; impact calibration has seed ranges of
+its own (`oodrl.impact`).
 """
 
 from __future__ import annotations
@@ -36,6 +38,24 @@ def eval_seeds(params: Params) -> list[int]:
 def calibration_seeds(params: Params) -> list[int]:
     offset = params.seed + params.tiers.calibration_seed_offset
     return [offset + j for j in range(params.tiers.n_calibration)]
+
+
+def audit_seeds(params: Params) -> list[int]:
+    offset = params.seed + params.tiers.audit_seed_offset
+    return [offset + j for j in range(params.tiers.n_audit)]
+
+
+def twin_seeds(params: Params) -> list[int]:
+    """The evaluation seeds of the tier cells' `tiers.n_streams` streams (the first
+    `data.n_ood` of them are the clean evaluation set's)."""
+    offset = params.seed + params.data.eval_seed_offset
+    return [offset + j for j in range(params.tiers.n_streams)]
+
+
+#: The held-out clean sets of the tiers (SPEC §19), each on seeds of its own: the per-stream
+#: alarm rule's calibration streams, the audit streams that measure its achieved false-alarm
+#: rate (used for nothing else), and the clean twins of the tier cells' faulty streams.
+HELDOUT_SETS = {"calibration": calibration_seeds, "audit": audit_seeds, "twins": twin_seeds}
 
 
 def fit_calibration_split(params: Params) -> tuple[list[int], list[int]]:
@@ -98,10 +118,10 @@ def eval_set(params: Params, policy_path: Path) -> TrajectorySet:
     return _clean_set(params, policy_path, eval_seeds(params), "collect_eval", {})
 
 
-def calibration_set(params: Params, policy_path: Path) -> TrajectorySet:
-    """Held-out clean streams (T steps, as the evaluation streams) on which the per-stream
-    alarm rule is calibrated: never fitted on, never the evaluation set's matched twins."""
-    return _clean_set(params, policy_path, calibration_seeds(params), "collect_calibration", {})
+def heldout_set(params: Params, which: str, policy_path: Path) -> TrajectorySet:
+    """One of the `HELDOUT_SETS`: clean streams of T steps, as the evaluation streams, never
+    fitted on."""
+    return _clean_set(params, policy_path, HELDOUT_SETS[which](params), f"collect_{which}", {})
 
 
 def perturbed_sets(
@@ -130,17 +150,18 @@ def perturbed_sets(
 
 
 def online_sets(
-    params: Params, injector: OnlineInjector, severities: list[float], policy_path: Path, label: str
-) -> list[TrajectorySet]:
-    """The evaluation streams with an online fault from the onset at each severity, simulated
-    together so their rollouts share the stage's workers: each stream is the matched twin of a
-    clean evaluation stream."""
+    params: Params, injector: OnlineInjector, severities: list[float], policy_path: Path,
+    label: str, seeds: list[int] | None = None,
+) -> list[TrajectorySet]:  # fmt: skip
+    """The evaluation streams (or `seeds`) with an online fault from the onset at each
+    severity, simulated together so their rollouts share the stage's workers: each stream is
+    the matched twin of the clean stream of its seed."""
     from oodrl.injectors.apply import collect_online_sets
 
     onset, offset = params.env.resolved_onset, params.anomaly.offset
     specs = [injector.spec(severity, onset, offset) for severity in severities]
     adapter, policy = _adapter(params), _policy(params, policy_path)
-    seeds = eval_seeds(params)
+    seeds = eval_seeds(params) if seeds is None else seeds
     with progress_bar(len(seeds) * len(specs), label, params.executor.progress) as bar:
         sets = collect_online_sets(
             injector, adapter, policy, seeds, params.env.T, specs,

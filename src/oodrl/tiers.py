@@ -6,7 +6,8 @@ The stages (one pipeline, `oodrl.pipeline`):
   and the severity of each tier, or "unreachable";
 - `collect_tiers@<fault>` collects the evaluation streams with the fault live from the onset at
   each reachable tier (`tier_sets`): `data/tiers/<fault>.zarr`;
-- `collect_calibration` collects `tiers.n_calibration` held-out clean streams;
+- `collect_calibration`, `collect_audit` and `collect_twins` collect the held-out clean
+  streams (`oodrl.protocol.HELDOUT_SETS`);
 - each detector's `score_clean` and `score@<fault>` score them (`oodrl.layout` names the stores);
 - `tier_metrics` writes `reports/tier_results.yaml` and `reports/tiers/`
   (`oodrl.metrics.tiers`).
@@ -69,15 +70,18 @@ def tier_sets(
 
     Observation faults run as their live counterparts (the policy acts on the faulty sensor),
     with the same parameters and the clean ID set's reference statistics, as in the impact
-    calibration that set the severities (`oodrl.impact.live_injectors`). The streams'
-    seeds are the evaluation seeds, so each is the matched twin of a clean evaluation stream.
+    calibration that set the severities (`oodrl.impact.live_injectors`). The streams' seeds
+    are the first `tiers.n_streams` evaluation seeds, so each is the matched twin of a stream
+    of the clean twins set (`collect_twins`).
     """
     from oodrl.impact import live_injectors
-    from oodrl.protocol import online_sets
+    from oodrl.protocol import online_sets, twin_seeds
 
     injector = live_injectors(params, [injector_name], id_path)[injector_name]
     label = f"{injector_name} ({len(tiers)} tiers)"
-    sets = online_sets(params, injector, list(tiers.values()), policy_path, label)
+    sets = online_sets(
+        params, injector, list(tiers.values()), policy_path, label, twin_seeds(params)
+    )
     return [
         dataclasses.replace(t, attrs={**t.attrs, "tier": tier})
         for tier, t in zip(tiers, sets, strict=True)

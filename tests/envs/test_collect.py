@@ -110,3 +110,24 @@ def test_continuous_sets_survive_a_store_round_trip(tmp_path):
         assert stored.dtype == original.dtype
         np.testing.assert_array_equal(stored, original)
     assert again.trajectory(1).actions.shape == (25, 1)
+
+
+def test_first_episode_collection_stops_each_stream_at_its_first_end():
+    """What impact calibration counts (the first episode's return) is the same with and without
+    simulating the rest of the horizon; a stopped stream's later steps are zero."""
+    from oodrl.impact import first_episode_returns
+
+    adapter, policy = LunarLanderAdapter(), HeuristicPolicy()
+    seeds = list(range(500000, 500006))
+    full = collect(adapter, policy, seeds, 1000)
+    short = collect(adapter, policy, seeds, 1000, first_episode=True)
+    assert np.array_equal(first_episode_returns(full), first_episode_returns(short))
+    ends = short.dones.argmax(axis=1)
+    assert short.dones.sum(axis=1).tolist() == [1] * len(seeds)
+    for row, end in enumerate(ends):
+        before = slice(0, end + 1)
+        for field in ("states", "actions", "rewards", "next_states"):
+            assert np.array_equal(
+                getattr(short, field)[row, before], getattr(full, field)[row, before]
+            )
+            assert not getattr(short, field)[row, end + 1 :].any()

@@ -118,7 +118,8 @@ def test_too_few_streams_is_one_config_error_naming_the_fewest_and_the_smallest_
 def test_check_params_refuses_too_few_streams_for_the_conditional_rule(tmp_path, default_params):
     from oodrl.params_check import check_completely
 
-    default_params["tiers"]["threshold_rule"] = "episode_max_conditional"
+    assert default_params["tiers"]["threshold_rule"] == "episode_max_conditional"
+    default_params["tiers"]["n_calibration"] = 39
     with pytest.raises(ConfigError, match=r"tiers\.n_calibration: .* at least 45 .*got 39"):
         check_completely(parse_params(default_params))
     bad = tmp_path / "bad.yaml"
@@ -134,19 +135,14 @@ def test_check_params_refuses_too_few_streams_for_the_conditional_rule(tmp_path,
         check_completely(parse_params(default_params))
 
 
-def test_the_new_keys_at_their_defaults_leave_the_params_hash_alone(default_params):
-    """Results stamped before §19 keep their params hash: the keys at their defaults are left
-    out of the resolved params; set otherwise, they are in it."""
+def test_the_rule_and_its_delta_are_hashed(default_params):
+    """Protocol version 3 hashes every tiers key: a results file says which rule made it."""
     default = parse_params(default_params)
-    assert not {"threshold_rule", "delta"} & set(default.model_dump(mode="json")["tiers"])
-    default_params["tiers"].update(threshold_rule="episode_max", delta=0.1)
-    assert params_hash(parse_params(default_params)) == params_hash(default)
-    default_params["tiers"].update(threshold_rule="episode_max_conditional", n_calibration=200)
-    conditional = parse_params(default_params)
-    assert conditional.model_dump(mode="json")["tiers"]["threshold_rule"] == (
-        "episode_max_conditional"
-    )
-    assert params_hash(conditional) != params_hash(default)
+    tiers = default.model_dump(mode="json")["tiers"]
+    assert tiers["threshold_rule"] == "episode_max_conditional" and tiers["delta"] == 0.1
+    default_params["tiers"].update(threshold_rule="episode_max")
+    assert params_hash(parse_params(default_params)) != params_hash(default)
+
 
 
 @pytest.mark.parametrize(("alarmed", "n"), [(0, 200), (3, 200), (11, 200), (200, 200), (7, 40)])

@@ -189,8 +189,8 @@ def test_board_leads_with_mild_and_detection_rate_by_family():
 
 
 def test_orders_and_families():
-    assert tier_order(["headline", "severe", "mild", "moderate"]) == [
-        "mild", "moderate", "severe", "headline"
+    assert tier_order(["headline", "benign", "severe", "mild", "moderate"]) == [
+        "mild", "moderate", "severe", "benign", "headline"
     ]  # fmt: skip
     assert metric_order(["matched_auroc", "detection_rate@100"])[0] == "detection_rate@100"
     assert fault_family("correlation_break") == "observation"

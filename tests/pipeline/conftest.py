@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from oodrl.layout import detector_stage
-from oodrl.testing.pipeline import copy_project, repro
+from oodrl.testing.pipeline import TINY_TIERS, copy_project, repro
 
 DETECTORS = ["mahalanobis_distance", "kde_density"]
 INJECTORS = ["observation_delay", "stuck_actuator"]
@@ -47,7 +47,7 @@ def tiny_params(default: dict) -> dict:
     params["benchmark"] = {"detectors": DETECTORS, "injectors": INJECTORS}
     params["metrics"]["n_boot"] = 20
     params["metrics"]["traces_per_anomaly"] = 1
-    params["tiers"].update(grid=[0.5, 1.0], episodes=2, n_calibration=19)
+    params["tiers"].update(TINY_TIERS)
     params["executor"]["workers"] = 1
     return params
 

@@ -16,7 +16,7 @@ from conftest import (
 )
 
 from oodrl.layout import detector_pipeline, detector_stage
-from oodrl.testing.pipeline import lock_hashes, repro, run
+from oodrl.testing.pipeline import TINY_TIERS, lock_hashes, repro, run
 
 pytestmark = pytest.mark.slow
 
@@ -61,7 +61,7 @@ def _check_tier_results(repo) -> None:
     from oodrl.tiers import read_impact, read_tiers
 
     document = yaml.safe_load((repo / "reports/tier_results.yaml").read_text())
-    assert document["protocol_version"] == 2 and document["params_hash"].startswith("sha256:")
+    assert document["protocol_version"] == 3 and document["params_hash"].startswith("sha256:")
     reachable = {
         (i, tier) for i in INJECTORS for tier in read_tiers(repo / f"data/impact/{i}.yaml", i)[0]
     }
@@ -69,18 +69,25 @@ def _check_tier_results(repo) -> None:
     assert {(r["detector"], r["injector"], r["tier"]) for r in records} == {
         (d, i, t) for d in DETECTORS for (i, t) in reachable
     }
+    n_streams, n_audit = TINY_TIERS["n_streams"], TINY_TIERS["n_audit"]
     for record in records:
         point = record["operating_point"]
-        assert point["alpha"] == 0.05 and point["n_clean"] == 3 and point["n_faulty"] == 3
+        # Cells of n_streams faulty streams; the false-alarm rate from the audit streams.
+        assert point["alpha"] == 0.05 and point["n_clean"] == n_audit
+        assert point["n_faulty"] == n_streams and isinstance(record["verified"], bool)
         detections = record["episodes"]["detection_rate@100"]
-        assert len(detections) == 3 and set(detections) <= {0.0, 1.0}
-        assert sum(detections) / 3 == pytest.approx(point["detection_rate"], abs=1e-6)
+        assert len(detections) == n_streams and set(detections) <= {0.0, 1.0}
+        assert sum(detections) / n_streams == pytest.approx(point["detection_rate"], abs=1e-6)
+        audit = document["false_alarm_audit"][record["detector"]]
+        assert audit["n_streams"] == n_audit and audit["rate"] == point["clean_false_alarm_rate"]
     for fault, impact in document["impact"].items():
-        assert set(impact["tiers"]) == {"mild", "moderate", "severe"}, fault
+        assert set(impact["tiers"]) == {"benign", "mild", "moderate", "severe"}, fault
         measured = read_impact(repo / f"data/impact/{fault}.yaml", fault)["fault"]
         assert impact["curve"] == measured["curve"]  # the leaderboard page draws it
         for tier in impact["tiers"].values():
             assert tier["severity"] == UNREACHABLE or 0 < tier["severity"] <= 1
+            if tier["severity"] != UNREACHABLE:  # measured where it is read, and verified
+                assert tier["verification"]["episodes"] == TINY_TIERS["search"]["verify_episodes"]
     assert set(document["minimum_detectable_impact"]) <= set(DETECTORS)
     assert (repo / "reports/tiers/tables.md").read_text().startswith("# Impact tiers")
     assert (repo / "reports/tiers/impact_curves.png").stat().st_size > 0
@@ -158,9 +165,9 @@ CODE_EDITS = {  # edited file -> the stages allowed to run (DVC skips those whos
     "src/oodrl/injectors/posthoc.py": {  # observation_delay is the tiny params' post-hoc one
         "check_params", *injector_stages("observation_delay"),
         *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render", "tier_metrics",
-        # The tier stages of every fault import the live observation faults (an
-        # over-approximation: their outputs, and so what follows them, stay the same).
-        "impact@stuck_actuator", "collect_tiers@stuck_actuator",
+        # The tier stages of every fault, and the impact reference, import the live observation
+        # faults (an over-approximation: their outputs, and so what follows them, stay the same).
+        "impact_reference", "impact@stuck_actuator", "collect_tiers@stuck_actuator",
     },
     "src/oodrl/metrics/ranking.py": {"check_params", "metrics", "render", "tier_metrics"},
 }  # fmt: skip

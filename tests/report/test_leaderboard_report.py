@@ -227,3 +227,39 @@ def test_one_cell_one_record(results, tmp_path: Path):
     again = {"CartPole-v1": [results["CartPole-v1"], results["CartPole-v1"]]}
     with pytest.raises(StoreError, match="a second record of cusum on"):
         read_inputs(again)
+
+
+def test_benign_cells_rank_the_quietest_first_and_unverified_cells_are_left_out(tmp_path: Path):
+    """SPEC §19: a detection at `benign` is a false alarm (lower is better); the harm view sets
+    it beside `mild`; a cell whose tier verification missed is in no aggregate, and listed."""
+    strength = {"cusum": 0.9, "kde_density": 0.3, "pedm": 0.6}
+    results = {}
+    for seed, env in enumerate(("CartPole-v1", "Hopper-v5")):
+        path = write_results(
+            tmp_path / env / "results.yaml", seed, strength, tiers=("mild", "benign"),
+            detection=True, extra={"protocol_version": 3},
+        )  # fmt: skip
+        document = yamlio.load(path.read_text())
+        for record in document["records"]:
+            if record.get("tier") is not None:
+                # Hopper's benign gradual_drift tier missed its verification.
+                missed = (env, record["tier"], record["injector"]) == (
+                    "Hopper-v5", "benign", "gradual_drift"
+                )  # fmt: skip
+                record["verified"] = not missed
+        path.write_text(yamlio.dump(document))
+        results[env] = path
+    inputs = read_inputs(results)
+    assert inputs.unverified == (("Hopper-v5", "0", "gradual_drift", "benign"),)
+    board = run_leaderboard(results, tmp_path / "out", n_boot=100, ci=0.95, seed=0)
+    assert board.overall[("detection_rate@100", "benign")].n_cells == 5  # 6 less the missed one
+    assert board.overall[("detection_rate@100", "mild")].n_cells == 6
+    table = (tmp_path / "out" / "leaderboard.md").read_text()
+    heading = "## Tier `benign`: mean detection_rate@100"
+    benign = board.overall[("detection_rate@100", "benign")]
+    quietest_first = sorted(strength, key=lambda d: (benign.iqm[d].value, d))
+    assert table_rows(table, heading)[2:] == quietest_first  # after the note and the rule
+    assert "an alarm here is a cost, so lower is better" in table
+    assert "## Detects what hurts, stays quiet on what does not" in table
+    assert "1 cell whose tier's verification missed its level" in table
+    assert "Hopper-v5/0/gradual_drift/benign" in table

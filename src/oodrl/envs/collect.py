@@ -56,6 +56,9 @@ class _Job:
     seeds: tuple[int, ...]
     faults: tuple[Fault | None, ...]
     labels: np.ndarray  # (n, T) bool
+    #: Stop each stream when its first episode ends (the steps after it left zero): what
+    #: impact calibration counts, without simulating the rest of the horizon.
+    first_episode: bool = False
 
 
 def _step_arrays(adapter: EnvironmentAdapter, n: int, T: int) -> dict[str, np.ndarray]:  # noqa: N803
@@ -107,6 +110,7 @@ def _rollout(
     """
     seeds, faults, labels = job.seeds, job.faults, job.labels
     n = len(seeds)
+    running = [True] * n  # False once a stream's first episode ended, with `first_episode`
     envs = [adapter.make() for _ in range(n)]
     steps = [env.step for env in envs]
     handles = [adapter.handle(env) for env in envs]
@@ -122,6 +126,8 @@ def _rollout(
     rewards: list = [0.0] * n
     dones: list = [False] * n
     for t in range(T):
+        if not any(running):
+            break
         commanded = _commanded(adapter, policy, obs, rngs)
         states[:, t] = obs
         actions[:, t] = commanded
@@ -130,6 +136,9 @@ def _rollout(
         observed = next_states[:, t]
         faulted, reset = [], []
         for i in range(n):
+            if not running[i]:
+                dones[i], rewards[i] = False, 0.0
+                continue
             fault = faults[i] if active is not None and active[i] else None
             if fault is None:
                 nxt, rewards[i], terminated, truncated, _ = steps[i](commanded[i])
@@ -140,7 +149,9 @@ def _rollout(
                 faulted.append((i, action))
             observed[i] = nxt
             done = dones[i] = terminated or truncated
-            if done:
+            if done and job.first_episode:
+                running[i] = False
+            elif done:
                 episodes[i] += 1
                 nxt = envs[i].reset(seed=episode_seed(seeds[i], episodes[i]))[0]
                 if fault is not None:
@@ -157,6 +168,10 @@ def _rollout(
             obs[i] = nxt
     for env in envs:
         env.close()
+    if job.first_episode:  # a stopped stream's steps after its first episode stay zero
+        after = np.cumsum(out["dones"], axis=1) - out["dones"] > 0
+        for key in ("states", "actions", "executed_actions", "next_states", "rewards"):
+            out[key][after] = 0
     return out
 
 
@@ -180,11 +195,13 @@ def collect_many(
     policy_seed: int = 0,
     workers: int = 1,
     progress: Callable[[int], None] | None = None,
+    first_episode: bool = False,
 ) -> list[TrajectorySet]:
     """Collect several sets at once: their streams share the jobs and one pool of workers.
 
     `progress(n)` is called as each job of n streams is done (len of every request's seeds in
-    all)."""
+    all). `first_episode`: each stream stops when its first episode ends, its later steps left
+    zero (`_Job.first_episode`)."""
     adapter.check_policy(policy)
     streams = []  # (request index, row in its set, seed, fault, labels)
     for index, request in enumerate(requests):
@@ -202,6 +219,7 @@ def collect_many(
             tuple(streams[k][2] for k in members),
             tuple(streams[k][3] for k in members),
             np.stack([streams[k][4] for k in members]),
+            first_episode,
         )
         for members in plan
     ]
@@ -257,8 +275,10 @@ def collect(
     workers: int = 1,
     attrs: dict | None = None,
     progress: Callable[[int], None] | None = None,
+    first_episode: bool = False,
 ) -> TrajectorySet:
-    """Roll out one deployment stream per seed; `faults[i]` acts on stream i where `labels`."""
+    """Roll out one deployment stream per seed; `faults[i]` acts on stream i where `labels`;
+    `first_episode`: each stream stops when its first episode ends (`collect_many`)."""
     request = Request(
         tuple(int(s) for s in seeds),
         labels,
@@ -266,5 +286,6 @@ def collect(
         attrs,
     )
     return collect_many(
-        adapter, policy, [request], T, policy_seed=policy_seed, workers=workers, progress=progress
-    )[0]
+        adapter, policy, [request], T, policy_seed=policy_seed, workers=workers,
+        progress=progress, first_episode=first_episode,
+    )[0]  # fmt: skip

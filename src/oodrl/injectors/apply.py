@@ -90,10 +90,12 @@ def collect_online_sets(
     policy_seed: int,
     workers: int = 1,
     progress: Callable[[int], None] | None = None,
+    first_episode: bool = False,
 ) -> list[TrajectorySet]:
     """`collect_online` for several specs (a severity sweep) sharing one pool of workers.
 
-    `progress(n)` is called as each block of n streams is done: len(seeds) · len(specs) in all.
+    `progress(n)` is called as each job of n streams is done: len(seeds) · len(specs) in all.
+    `first_episode`: each stream stops when its first episode ends (`oodrl.envs.collect`).
     """
     injector.check_adapter(adapter)
     requests = []
@@ -113,5 +115,6 @@ def collect_online_sets(
         }
         requests.append(Request(tuple(int(s) for s in seeds), spec.labels(T), faults, attrs))
     return collect_many(
-        adapter, policy, requests, T, policy_seed=policy_seed, workers=workers, progress=progress
-    )
+        adapter, policy, requests, T, policy_seed=policy_seed, workers=workers,
+        progress=progress, first_episode=first_episode,
+    )  # fmt: skip

@@ -3,7 +3,8 @@
 
 A *cell* is (environment, policy, fault, tier): a policy is one training seed of the
 environment's policy (runs before policy seeds are policy "0"); a tier is an impact tier
-(`mild`, `moderate`, `severe`) or, for results scored at one fixed severity, `headline`.
+(`mild`, `moderate`, `severe`; `benign`, the harmless-shift control, where a detection is a
+false alarm) or, for results scored at one fixed severity, `headline`.
 A *task* is a cell without its policy, (environment, fault, tier): the policies of a task are
 its *runs*. In each cell a detector has one value per episode (matched AUROC per episode, or
 0/1 per faulty stream for `detection_rate@K`); the *score* of a (run, task) is their mean.
@@ -54,6 +55,8 @@ CellValues = Mapping[Cell, Mapping[str, Sequence[float]]]
 
 #: Impact tiers, the hardest to detect first (SPEC §15).
 TIERS = ("mild", "moderate", "severe")
+#: The harmless-shift control (SPEC §19): detection there is a false alarm, so lower is better.
+BENIGN_TIER = "benign"
 #: The tier of results scored at one fixed severity (the protocol before impact tiers).
 HEADLINE_TIER = "headline"
 #: The policy of an environment that has one (results before policy seeds).
@@ -87,8 +90,8 @@ def fault_family(fault: str) -> str:
 
 
 def tier_order(tiers: Iterable[str]) -> list[str]:
-    """Tiers mild first, then moderate, severe, headline, then any other by name."""
-    known = (*TIERS, HEADLINE_TIER)
+    """Tiers mild first, then moderate, severe, benign, headline, then any other by name."""
+    known = (*TIERS, BENIGN_TIER, HEADLINE_TIER)
     return sorted(set(tiers), key=lambda t: (known.index(t) if t in known else len(known), t))
 
 

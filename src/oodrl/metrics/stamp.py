@@ -16,9 +16,10 @@ if TYPE_CHECKING:
 
 
 #: The protocol a results file follows: 2 = SPEC §15/§16 (impact tiers, operating points,
-#: policy seeds, trivial-signal baselines). Bump it whenever results stop being comparable
-#: with the previous version's.
-PROTOCOL_VERSION = 2
+#: policy seeds, trivial-signal baselines); 3 = SPEC §19 (tiers searched and verified, the
+#: benign tier, 100-stream cells, the training-conditional threshold, the audit set). Bump it
+#: whenever results stop being comparable with the previous version's.
+PROTOCOL_VERSION = 3
 #: What a results file without a stamp is read as: the protocol before stamps, SPEC §3-§12.
 UNSTAMPED_VERSION = 1
 

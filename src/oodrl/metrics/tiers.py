@@ -2,13 +2,16 @@
 stage's results, `reports/tier_results.yaml` (the stages that feed it: `oodrl.tiers`).
 
 Per (detector, fault, tier) a record holds every metric of SPEC §6 against the matched clean
-evaluation streams (per-episode matched AUROC kept for the leaderboard), and the operating
-point of the per-stream conformal rule (`oodrl.metrics.operating`): its threshold is computed
-from the detector's scores on the calibration streams at `tiers.alpha` by `tiers.threshold_rule`
-(marginal `episode_max`, or training-conditional `episode_max_conditional` at `tiers.delta`);
-`detection_rate@K` per stream (kept per episode too), the delays of the streams detected within
-K (shown from 5 on), the detection-rate curve, and the clean false-alarm rate achieved on the
-evaluation streams. Per detector × fault, the minimum detectable impact:
+twins of its `tiers.n_streams` faulty streams (per-episode matched AUROC kept for the
+leaderboard), whether the tier's verification held (SPEC §19: an unverified cell is left out of
+tier aggregates), and the operating point of the per-stream conformal rule
+(`oodrl.metrics.operating`): its threshold is computed from the detector's scores on the
+calibration streams at `tiers.alpha` by `tiers.threshold_rule` (training-conditional
+`episode_max_conditional` at `tiers.delta`, or marginal `episode_max`); `detection_rate@K` per
+stream (kept per episode too), the delays of the streams detected within K (shown from 5 on),
+the detection-rate curve, and the clean false-alarm rate the threshold achieves on the audit
+streams (used for nothing else), also kept once per detector. Per detector × fault, the
+minimum detectable impact:
 the smallest return loss at which matched AUROC, and `detection_rate@K`, reach 0.9 on the tiers
 (the metric linear between the tiers' severities, the loss read on the monotone impact curve).
 """
@@ -22,13 +25,7 @@ from typing import Any
 import numpy as np
 
 from oodrl.config import Params
-from oodrl.layout import (
-    CLEAN_GROUP,
-    calibration_score_store,
-    detector_stage,
-    score_store,
-    tier_score_store,
-)
+from oodrl.layout import CLEAN_GROUP, detector_stage, heldout_score_store, tier_score_store
 from oodrl.store import read_scores, severity_key
 from oodrl.tiers import impact_path, read_impact
 
@@ -62,17 +59,20 @@ def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detect
 
     tiers = params.tiers
     latency = params.detector(detector).latency
-    clean_groups, _ = read_scores(
-        score_store(scores_dir, detector), stage=detector_stage(detector, "score_clean")
-    )
-    clean = clean_groups[CLEAN_GROUP]["scores"]
-    calibration_groups, _ = read_scores(
-        calibration_score_store(scores_dir, detector),
-        stage=detector_stage(detector, "score_clean"),
-    )
+
+    def heldout(which: str) -> np.ndarray:
+        groups, _ = read_scores(
+            heldout_score_store(scores_dir, detector, which),
+            stage=detector_stage(detector, "score_clean"),
+        )
+        return groups[CLEAN_GROUP]["scores"]
+
+    # The tier streams' clean twins (same seeds) for the matched metrics; the audit streams,
+    # used for nothing else, for the false-alarm rate the threshold achieves (SPEC §19).
+    twins, audit = heldout("twins"), heldout("audit")
     # The per-stream rule (`tiers.threshold_rule`): an order statistic of the calibration
-    # streams' maxima, marginal or training-conditional.
-    maxima = calibration_groups[CLEAN_GROUP]["scores"].max(axis=1)
+    # streams' maxima, training-conditional or marginal.
+    maxima = heldout("calibration").max(axis=1)
     threshold = per_stream_threshold(maxima, tiers.alpha, tiers.threshold_rule, tiers.delta)
     records = []
     for fault in params.benchmark.injectors:
@@ -80,16 +80,22 @@ def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detect
             tier_score_store(scores_dir, detector, fault),
             stage=detector_stage(detector, "score", fault),
         )
+        verification = {
+            name: tier.get("verification", {}).get("verified", False)
+            for name, tier in read_impact(impact_path(impact_dir, fault), fault)["fault"][
+                "tiers"
+            ].items()
+        }
         for tier, severity in attrs["tiers"].items():
             group = groups[severity_key(severity)]
             onset, offset = attrs["spec"]["onset"], attrs["spec"]["offset"]
             per_episode = episode_metrics(
-                group["scores"], clean, group["labels"], threshold, onset, offset,
+                group["scores"], twins, group["labels"], threshold, onset, offset,
                 params.metrics, detector, latency,
             )  # fmt: skip
             detected = _per_stream_detections(group["scores"], threshold, onset, tiers.k, latency)
             point = operating(
-                group["scores"], clean, threshold, onset,
+                group["scores"], audit, threshold, onset,
                 alpha=tiers.alpha, k=tiers.k, latency=latency, confidence=params.metrics.ci,
             )  # fmt: skip
             records.append({
@@ -98,6 +104,7 @@ def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detect
                 "injector": fault,
                 "tier": tier,
                 "severity": float(severity),
+                "verified": bool(verification.get(tier, False)),
                 "mode": "online",
                 "latency": latency,
                 "metrics": summarise(per_episode, params.metrics, seed=params.seed),
@@ -152,6 +159,22 @@ def _impact_summary(document: Mapping[str, Any]) -> dict[str, Any]:
     }
 
 
+def _false_alarm_audit(records: list[dict]) -> dict[str, dict[str, Any]]:
+    """Per detector, the false-alarm rate its per-stream threshold achieves on the audit
+    streams (every record of a detector holds the same, from one threshold)."""
+    audit = {}
+    for r in records:
+        point = r["operating_point"]
+        audit[r["detector"]] = {
+            "threshold": point["threshold"],
+            "rate": point["clean_false_alarm_rate"],
+            "ci": point["clean_false_alarm_ci"],
+            "n_alarmed": round(point["clean_false_alarm_rate"] * point["n_clean"]),
+            "n_streams": point["n_clean"],
+        }
+    return audit
+
+
 def compute_tier_results(params: Params, scores_dir: Path, impact_dir: Path) -> dict[str, Any]:
     """tier_results.yaml's content (sorted records, the impact tiers, the stamp)."""
     from oodrl.metrics.stamp import protocol_stamp
@@ -169,6 +192,7 @@ def compute_tier_results(params: Params, scores_dir: Path, impact_dir: Path) -> 
         **protocol_stamp(params),
         "alpha": params.tiers.alpha,
         "k": params.tiers.k,
+        "false_alarm_audit": _false_alarm_audit(records),
         "records": records,
         "impact": {fault: _impact_summary(doc) for fault, doc in impacts.items()},
         "minimum_detectable_impact": _minimum_detectable_impact(records, impacts, params.tiers.k),
@@ -188,34 +212,60 @@ def tier_tables(document: Mapping[str, Any], impact: Mapping[str, Any]) -> str:
     """Markdown: the tiers' severities per fault, then per tier the detection rate at α
     (with its CI), the median delay of the streams detected within K with their count ("—"
     below 5) and the matched AUROC of every (detector, fault)."""
+    from oodrl.impact import LEVELS
     from oodrl.metrics.operating import delay_text
     from oodrl.report.impact import impact_table
 
     k, alpha = document["k"], document["alpha"]
+    levels = " / ".join(f"{level:g}" for level in LEVELS.values())
     lines = ["# Impact tiers and detection at a false-alarm budget", "",
-             "## Tier severities (normalised return R̃ falls to 0.95 / 0.90 / 0.75)", "",
+             f"## Tier severities (normalised return R̃ falls to {levels})", "",
              impact_table(impact).rstrip("\n"), ""]  # fmt: skip
+    audit = document.get("false_alarm_audit") or {}
+    if audit:
+        n = next(iter(audit.values()))["n_streams"]
+        lines += [
+            f"## Achieved false-alarm rate on {n} audit streams (α = {alpha:g})",
+            "",
+            "Clean streams used for nothing else (SPEC §19): the share that raises any alarm at "
+            "the per-stream threshold, with its Clopper-Pearson 95% CI.",
+            "",
+            "| detector | false-alarm rate [95% CI] | streams alarmed |",
+            "|---|---:|---:|",
+            *(
+                f"| {d} | {a['rate']:.3f} [{a['ci'][0]:.3f}, {a['ci'][1]:.3f}] | "
+                f"{a['n_alarmed']} of {a['n_streams']} |"
+                for d, a in sorted(audit.items())
+            ),
+            "",
+        ]
     by_tier: dict[str, list[dict]] = {}
     for record in document["records"]:
         by_tier.setdefault(record["tier"], []).append(record)
-    for tier in ("mild", "moderate", "severe"):
+    for tier in LEVELS:
         rows = by_tier.get(tier, [])
         if not rows:
             continue
+        cost = " (harmless shifts: a detection here is a false alarm)" if tier == "benign" else ""
         lines += [
-            f"## {tier}: detection_rate@{k} at α = {alpha:g} [95% CI], median delay, matched AUROC",
+            f"## {tier}: detection_rate@{k} at α = {alpha:g} [95% CI], median delay, matched "
+            f"AUROC{cost}",
             "",
-            "| detector | fault | σ | detection rate | median delay (n detected) | matched AUROC |",
+            "| detector | fault | σ | detection rate (n streams) | median delay (n detected) "
+            "| matched AUROC |",
             "|---|---|---:|---:|---:|---:|",
         ]
         for r in rows:
             point = r["operating_point"]
             low, high = point["detection_rate_ci"]
+            mark = "" if r.get("verified", True) else " ✗"
             lines.append(
-                f"| {r['detector']} | {r['injector']} | {r['severity']:.3f} | "
-                f"{point['detection_rate']:.2f} [{low:.2f}, {high:.2f}] | "
+                f"| {r['detector']} | {r['injector']}{mark} | {r['severity']:.4g} | "
+                f"{point['detection_rate']:.2f} [{low:.2f}, {high:.2f}] ({point['n_faulty']}) | "
                 f"{delay_text(point['delay'])} | "
                 f"{r['metrics']['matched_auroc']['mean']:.3f} |"
             )
         lines.append("")
+    if any(not r.get("verified", True) for r in document["records"]):
+        lines += ["✗: the tier's verification missed its level; left out of tier aggregates.", ""]
     return "\n".join(lines)

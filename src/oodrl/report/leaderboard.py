@@ -22,6 +22,7 @@ from typing import Any
 
 from oodrl import yamlio
 from oodrl.metrics.leaderboard import (
+    BENIGN_TIER,
     FIRST_POLICY,
     HEADLINE_TIER,
     MATCHED_AUROC,
@@ -76,6 +77,8 @@ class Inputs:
     impact: dict[tuple[str, str, str], dict[str, Any]] = field(default_factory=dict)
     #: (environment, policy) → the params hashes of its results files (None: unstamped).
     params_hashes: dict[tuple[str, str], tuple[str | None, ...]] = field(default_factory=dict)
+    #: Cells whose tier's verification missed its level (SPEC §19): left out of every aggregate.
+    unverified: tuple[Cell, ...] = ()
 
 
 def _run_key(key: tuple[str, str] | str) -> tuple[str, str]:
@@ -104,6 +107,7 @@ def read_inputs(results: ResultsPaths) -> Inputs:
     alphas: set[float] = set()
     mdi: MinimumDetectableImpact = {}
     uncertified: set[str] = set()
+    unverified: set[Cell] = set()
     for key, paths in results.items():
         env_id, policy = _run_key(key)
         for path in _paths(paths):
@@ -128,6 +132,9 @@ def read_inputs(results: ResultsPaths) -> Inputs:
                     )
                 tier = record.get("tier", HEADLINE_TIER)
                 cell = Cell(env_id, policy, record_injector(record), tier)
+                if record.get("verified") is False:  # results before SPEC §19 have no flag
+                    unverified.add(cell)
+                    continue
                 detector = record["detector"]
                 if (cell, detector) in metrics_of:
                     raise StoreError(
@@ -173,8 +180,9 @@ def read_inputs(results: ResultsPaths) -> Inputs:
         run: tuple(sorted(found, key=lambda h: h or "")) for run, found in sorted(hashes.items())
     }
     return Inputs(
-        cells, version, alpha, mdi, tuple(sorted(uncertified)), records, impact, params_hashes
-    )
+        cells, version, alpha, mdi, tuple(sorted(uncertified)), records, impact, params_hashes,
+        tuple(sorted(unverified)),
+    )  # fmt: skip
 
 
 def metric_label(metric: str, alpha: float | None = None) -> str:
@@ -220,6 +228,9 @@ def _section(
     unflagged = board.unflagged.get((metric, tier))
     label = metric_label(metric, alpha)
     order = overall.ranked()
+    harmless = tier == BENIGN_TIER and metric.startswith("detection_rate")
+    if harmless:  # a detection of a harmless shift is a false alarm: the quietest first
+        order = sorted(overall.detectors, key=lambda d: (overall.iqm[d].value, d))
     envs = list(overall.environments)
     header = ["detector", *envs, "IQM [95% CI]", "mean [95% CI]"]
     if unflagged is not None:
@@ -237,13 +248,20 @@ def _section(
         f"## Tier `{tier}`: mean {label} per detector and environment "
         f"({_count(overall.n_cells, 'cell')})",
         "",
+        *(
+            ["Harmless shifts (R̃ = 0.99): an alarm here is a cost, so lower is better and the "
+             "quietest detector comes first.", ""]
+            if harmless else []
+        ),
         *_table(header, rows),
         "",
         f"IQM: mean of the middle 50% of (policy, cell) scores ({_runs_note(overall)}); "
         f"CIs: stratified bootstrap, {_bootstrap_note(overall)}. "
         f"Cells a trivial signal detects: {flagged} of {overall.n_cells}.",
         "",
-    ]
+    ]  # fmt: skip
+    if harmless:
+        return lines
     families = board.families[(metric, tier)]
     names = list(families)
     lines += [f"### By fault family (IQM of {label} [95% CI])", ""]
@@ -286,6 +304,38 @@ def _section(
         *_stability_lines(board, metric, tier),
     ]
     return lines
+
+
+def _harm_lines(board: Board, alpha: float | None) -> list[str]:
+    """Detects what hurts, stays quiet on what does not (SPEC §19): per detector, its
+    detection rate at `mild` beside its alarm rate on `benign` shifts, and the difference."""
+    metric = next(
+        (m for m in board.metrics if m.startswith("detection_rate")
+         and (m, "mild") in board.overall and (m, BENIGN_TIER) in board.overall),
+        None,
+    )  # fmt: skip
+    if metric is None:
+        return []
+    harmful, harmless = board.overall[(metric, "mild")], board.overall[(metric, BENIGN_TIER)]
+    detectors = sorted(
+        set(harmful.detectors) & set(harmless.detectors),
+        key=lambda d: (-(harmful.iqm[d].value - harmless.iqm[d].value), d),
+    )
+    rows = [
+        [d, _interval(harmful.iqm[d]), _interval(harmless.iqm[d]),
+         f"{harmful.iqm[d].value - harmless.iqm[d].value:+.3f}"]
+        for d in detectors
+    ]  # fmt: skip
+    label = metric_label(metric, alpha)
+    return [
+        "## Detects what hurts, stays quiet on what does not",
+        "",
+        *_table(["detector", "mild: IQM [95% CI]", "benign: IQM [95% CI]", "mild − benign"], rows),
+        "",
+        f"{label}: at `mild` (5% of the return lost) a detection; at `benign` (1% lost) a "
+        "false alarm. Ordered by the difference of the two IQMs.",
+        "",
+    ]
 
 
 def _stability_lines(board: Board, metric: str, tier: str) -> list[str]:
@@ -364,9 +414,11 @@ def markdown(
     alpha: float | None = None,
     minimum_detectable_impact: MinimumDetectableImpact | None = None,
     uncertified: Sequence[str] = (),
+    unverified: Sequence[Cell] = (),
 ) -> str:
-    """leaderboard.md: the lead (metric, tier) first, then every other, then flags and MDI;
-    uncertified detectors marked, with a note, when there are some."""
+    """leaderboard.md: the lead (metric, tier) first, then every other, the harmless-shift
+    view, then flags and MDI; uncertified detectors marked, with a note, when there are some;
+    the cells left out for a missed tier verification listed."""
     lead = board.overall[board.lead]
     policies = sorted({p for s in board.stability.values() for p in s.policies}, key=policy_key)
     stamp = (
@@ -385,6 +437,16 @@ def markdown(
     ]
     for metric, tier in board.order():
         lines += _section(board, metric, tier, alpha, uncertified)
+    lines += _harm_lines(board, alpha)
+    if unverified:
+        cells = ", ".join("/".join(cell) for cell in unverified)
+        lines += [
+            "## Tiers left out",
+            "",
+            f"{_count(len(unverified), 'cell')} whose tier's verification missed its level "
+            f"(SPEC §19), in no aggregate: {cells}.",
+            "",
+        ]
     if uncertified:
         lines += ["## Machine independence", "", certification_note(uncertified), ""]
     lines += _flag_lines(board, lead.detectors)

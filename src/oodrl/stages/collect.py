@@ -38,5 +38,6 @@ def collect_sweep(
                 {"injector": injector_name, "mode": sets[0].attrs.get("mode")})  # fmt: skip
 
 
-def collect_calibration(params: Params, policy_path: Path, out: Path) -> None:
-    write_trajectories(out, protocol.calibration_set(params, policy_path))
+def collect_heldout(params: Params, which: str, policy_path: Path, out: Path) -> None:
+    """Stages collect_calibration, collect_audit, collect_twins (`oodrl.protocol.heldout_set`)."""
+    write_trajectories(out, protocol.heldout_set(params, which, policy_path))

@@ -1,6 +1,8 @@
-"""The impact tier stages (SPEC §15): `impact` measures faults' impact curves and tiers for one
-(environment, policy) as impact.yaml (`oodrl.impact`; the table and figure of the tiers are
-tier_metrics', `oodrl.report.impact`); `collect_tiers` collects a fault's tier streams."""
+"""The impact tier stages (SPEC §15, §19): `impact_reference` measures π's clean returns and
+the random policy's once; `impact` measures faults' impact curves and searches and verifies
+their tiers for one (environment, policy) as impact.yaml (`oodrl.impact`; the table and figure
+of the tiers are tier_metrics', `oodrl.report.impact`); `collect_tiers` collects a fault's tier
+streams."""
 
 from __future__ import annotations
 
@@ -16,22 +18,43 @@ from oodrl.fileio import atomic_write_text
 DEFAULT_GRID = tuple(round(0.1 * i, 1) for i in range(1, 11))
 
 
+def run_impact_reference(
+    params: Params, policy_path: Path, out: Path, *, horizon: int | None = None
+) -> None:
+    """Stage impact_reference: π's clean returns on every seed the impact stages use (the
+    coarse curves', the tier search's, the verifications') and the random policy's, measured
+    once for every fault (`oodrl.impact.measure_reference`)."""
+    from oodrl.envs import ENVIRONMENTS
+    from oodrl.impact import episode_limit, measure_reference
+    from oodrl.policies.load import load_policy
+
+    adapter = ENVIRONMENTS.get(params.env.id)()
+    policy = load_policy(policy_path, mode=params.policy.mode)
+    reference = measure_reference(
+        adapter, policy, params.tiers.episodes, params.tiers.search, seed=params.seed,
+        horizon=horizon or episode_limit(adapter), workers=params.executor.resolved_workers,
+    )  # fmt: skip
+    atomic_write_text(out, yamlio.dump(reference.as_dict()))
+
+
 def run_impact(
     params: Params,
     policy_path: Path,
     out: Path,
     *,
     id_path: Path | None = None,
+    reference_path: Path | None = None,
     injectors: Sequence[str] | None = None,
     grid: Sequence[float] = DEFAULT_GRID,
     n_episodes: int = 100,
     n_boot: int | None = None,
     horizon: int | None = None,
 ) -> dict:
-    """Calibrate the impact of `injectors` (default: benchmark.injectors) and write the
-    document; returns it."""
+    """Calibrate the impact of `injectors` (default: benchmark.injectors), search and verify
+    their tiers, and write the document; returns it. `reference_path`: impact_reference's
+    document (measured here when not given)."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.impact import calibrate_impact, live_injectors
+    from oodrl.impact import Reference, calibrate_impact, live_injectors
     from oodrl.policies.load import load_policy
 
     if not grid or any(not 0 < s <= 1 for s in grid) or list(grid) != sorted(set(grid)):
@@ -41,12 +64,17 @@ def run_impact(
     names = list(injectors or params.benchmark.injectors)
     adapter = ENVIRONMENTS.get(params.env.id)()
     policy = load_policy(policy_path, mode=params.policy.mode)
+    reference = None
+    if reference_path is not None:
+        reference = Reference.from_dict(read_reference(reference_path))
     document = calibrate_impact(
         adapter,
         policy,
         live_injectors(params, names, id_path),
         grid,
         n_episodes,
+        search=params.tiers.search,
+        reference=reference,
         seed=params.seed,
         horizon=horizon,
         n_boot=n_boot or params.metrics.n_boot,
@@ -54,6 +82,21 @@ def run_impact(
         workers=params.executor.resolved_workers,
     )
     atomic_write_text(out, yamlio.dump(document))
+    return document
+
+
+def read_reference(path: Path) -> dict:
+    """impact_reference's document, or a one-line error saying how to restore it."""
+    from oodrl.errors import StoreError
+    from oodrl.store import restore_hint
+
+    if not Path(path).is_file():
+        raise StoreError(f"{path}: missing; {restore_hint(path, 'impact_reference')}.")
+    document = yamlio.load(Path(path).read_text())
+    if not isinstance(document, dict) or not {"clean", "random"} <= set(document):
+        raise StoreError(
+            f"{path}: not an impact reference; {restore_hint(path, 'impact_reference')}."
+        )
     return document
 
 

@@ -59,7 +59,8 @@ def run_leaderboard(
         "uncertified": inputs.uncertified,
     }
     out_dir = Path(out_dir)
-    atomic_write_text(out_dir / "leaderboard.md", report.markdown(board, **extras))
+    markdown = report.markdown(board, **extras, unverified=inputs.unverified)
+    atomic_write_text(out_dir / "leaderboard.md", markdown)
     mapping = report.board_mapping(board, **extras)
     atomic_write_text(out_dir / "leaderboard.yaml", yamlio.dump(mapping))
     text = json.dumps(report.metrics_json(board), indent=2, sort_keys=True) + "\n"

@@ -1,20 +1,21 @@
-"""Scoring stages: one fitted detector on the clean sets (stage score_clean: the evaluation set
-and the calibration streams) or on one injector's sets (stage score@<injector>: its headline
-set, its sweep and its tier streams). One stage per detector and injector rather than one per
-set: a stage process and DVC's bookkeeping cost more than scoring a set (SPEC §12). Each set is
-scored by a freshly loaded detector, as when every set had a process of its own; an injector's
-sets share the scores of their equal pre-onset steps (`oodrl.scoring.SharedPrefixes`), which
-are the same bits as scoring them again. What the score stores hold: `oodrl.scoring`; where:
-`oodrl.layout`."""
+"""Scoring stages: one fitted detector on the clean sets (stage score_clean: the evaluation set and
+the held-out calibration, audit and twin streams) or on one injector's sets (stage
+score@<injector>: its headline set, its sweep and its tier streams). One stage per detector and
+injector rather than one per set: a stage process and DVC's bookkeeping cost more than scoring a
+set (SPEC §12). Each set is scored by a freshly loaded detector, as when every set had a process
+of its own; an injector's sets share the scores of their equal pre-onset steps
+(`oodrl.scoring.SharedPrefixes`), which are the same bits as scoring them again. What the score
+stores hold: `oodrl.scoring`; where: `oodrl.layout`."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 
 from oodrl import scoring
 from oodrl.layout import (
-    calibration_score_store,
     detector_stage,
+    heldout_score_store,
     score_store,
     sweep_score_store,
     tier_score_store,
@@ -30,12 +31,16 @@ from oodrl.store import (
 
 def score_clean_sets(
     name: str, detector_path: Path, scores_dir: Path, eval_path: Path | None,
-    calibration_path: Path | None,
+    heldout: Mapping[str, Path | None],
 ) -> None:  # fmt: skip
-    """Stage score_clean: the sets given of the clean evaluation set and calibration streams."""
+    """Stage score_clean: the sets given of the clean evaluation set and the held-out clean
+    sets (`heldout`: set name -> store, `oodrl.protocol.HELDOUT_SETS`)."""
     for path, stage, out in [
         (eval_path, "collect_eval", score_store(scores_dir, name)),
-        (calibration_path, "collect_calibration", calibration_score_store(scores_dir, name)),
+        *(
+            (path, f"collect_{which}", heldout_score_store(scores_dir, name, which))
+            for which, path in heldout.items()
+        ),
     ]:
         if path is not None:
             clean = read_trajectories(path, stage=stage)

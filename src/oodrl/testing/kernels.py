@@ -104,7 +104,7 @@ for injector in injectors:
 for name in params.benchmark.detectors:
     model = out / f"models/{name}.pkl"
     fit.fit_detector(params, name, out / "data/id.zarr", model)
-    score.score_clean_sets(name, model, out / "scores", out / "data/eval.zarr", None)
+    score.score_clean_sets(name, model, out / "scores", out / "data/eval.zarr", {})
     for injector in injectors:
         ood, sweep = (out / f"data/{kind}/{injector}.zarr" for kind in ("ood", "sweep"))
         score.score_injector_sets(name, injector, model, out / "scores", ood, sweep, None)

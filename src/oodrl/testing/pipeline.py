@@ -16,6 +16,18 @@ from typing import Any
 
 import yaml
 
+#: The `tiers` block of tiny test pipelines: the fewest calibration streams α = 0.05 allows
+#: under the marginal rule, a handful of audit and tier streams, a two-probe tier search.
+TINY_TIERS: dict[str, Any] = {
+    "grid": [0.5, 1.0],
+    "episodes": 2,
+    "n_calibration": 19,
+    "threshold_rule": "episode_max",
+    "n_audit": 4,
+    "n_streams": 3,
+    "search": {"probe_episodes": 2, "max_probes": 2, "verify_episodes": 2},
+}
+
 
 def project_files(root: Path) -> list[str]:
     listed = subprocess.run(

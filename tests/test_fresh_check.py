@@ -1,0 +1,162 @@
+"""benchmarks/fresh_check.py (issue 39, item 7) as a user runs it: a subprocess on a tiny real
+pipeline (CartPole with its committed policy, 2 detectors, 1 fault, T = 60), built once for this
+module up to `tier_metrics`. CartPole, not the root's LunarLander: the impact stage rolls whole
+episodes, and CartPole's cost a fraction of LunarLander's."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from oodrl.config import parse_params, read_params_data
+from oodrl.testing.pipeline import copy_project, repro
+
+pytestmark = pytest.mark.slow
+
+ENVIRONMENT = "pipeline/cartpole"
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "fresh_check.py"
+DETECTORS = ["mahalanobis_distance", "kde_density"]
+FAULTS = ["stuck_actuator"]
+STREAMS, EPISODES = 7, 3
+
+
+def _known(model, values: dict) -> dict:
+    """The entries of `values` that the params section `model` has (the tier block grows)."""
+    return {key: value for key, value in values.items() if key in model.model_fields}
+
+
+def tiny_params(default: dict) -> dict:
+    from oodrl.config import TiersConfig
+
+    params = json.loads(json.dumps(default))
+    params["env"]["T"] = 60
+    params["data"].update(n_id=4, n_ood=3)
+    params["anomaly"]["sweep"] = [0.6]
+    params["benchmark"] = {"detectors": DETECTORS, "injectors": FAULTS}
+    params["metrics"]["n_boot"] = 20
+    params["executor"]["workers"] = 1
+    tiers = {"grid": [0.5, 1.0], "episodes": 2, "n_calibration": 19,
+             "threshold_rule": "episode_max", "n_streams": 3, "n_audit": 3}  # fmt: skip
+    params["tiers"].update(_known(TiersConfig, tiers))
+    search = TiersConfig.model_fields.get("search")
+    if search is not None and search.annotation is not None:
+        small = {"probe_episodes": 2, "max_probes": 1, "verify_episodes": 2}
+        params["tiers"]["search"] = _known(search.annotation, small)
+    # Every key written out, defaults included: a stage's `params:` may name a key the shared
+    # params file leaves to its default, and DVC reads only what the file holds.
+    return parse_params(params, components=False).model_dump(mode="json")
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory, repo_root) -> Path:
+    if not (repo_root / ENVIRONMENT / "models" / "policy.pt").is_file():
+        pytest.skip(f"{ENVIRONMENT}/models/policy.pt is not committed")
+    cartpole = repo_root / ENVIRONMENT
+    default = read_params_data(cartpole / "params.yaml")  # its `extends` merged
+    default.pop("extends", None)
+    repo = copy_project(repo_root, tmp_path_factory.mktemp("fresh") / "repo", tiny_params(default))
+    for name in ("policy.pt", "policy.json"):  # train_policy keeps it: trained with these settings
+        shutil.copy2(cartpole / "models" / name, repo / "models" / name)
+    repro(repo, "tier_metrics")
+    return repo
+
+
+def fresh_check(directory: Path, *args: str) -> subprocess.CompletedProcess:
+    command = [sys.executable, str(SCRIPT), "--pipeline", ".", "--workers", "1", *args]
+    return subprocess.run(command, cwd=directory, capture_output=True, text=True, timeout=600)
+
+
+def table(stdout: str, heading: str) -> list[dict[str, str]]:
+    """The markdown table under the `## ` heading starting with `heading`, as dicts."""
+    lines = stdout.splitlines()
+    start = next(i for i, line in enumerate(lines) if line.startswith(f"## {heading}"))
+    rows = []
+    for line in lines[start + 1 :]:
+        if line.startswith("## "):
+            break
+        if line.startswith("|"):
+            rows.append([cell.strip() for cell in line.strip("|").split("|")])
+    header, rule, *body = rows
+    assert set("".join(rule)) <= set("-:")
+    return [dict(zip(header, row, strict=True)) for row in body]
+
+
+def test_tables_count_what_was_asked(pipeline, tmp_path):
+    out = tmp_path / "fresh.json"
+    done = fresh_check(pipeline, "--streams", str(STREAMS), "--episodes", str(EPISODES),
+                       "--json", str(out))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    stdout = done.stdout
+    assert f"## False alarms: {STREAMS} fresh clean streams of 60 steps" in stdout
+    far = table(stdout, "False alarms")
+    assert [row["detector"] for row in far] == DETECTORS
+    for row in far:
+        assert row["streams"] == str(STREAMS)
+        assert 0 <= int(row["alarmed"]) <= STREAMS
+        assert row["α"] == "0.05"
+        assert row["verdict"] in ("not significantly above α", "above α")
+        rate = float(row["FAR [95% CI]"].split()[0])
+        assert rate == pytest.approx(int(row["alarmed"]) / STREAMS, abs=5e-4)
+    assert f"each rate from {STREAMS} streams" in stdout
+
+    assert f"{EPISODES} fresh whole episodes per condition" in stdout
+    assert f"({EPISODES} episodes), R_rand" in stdout
+    tiers = table(stdout, "Tiers")
+    impact = yaml.safe_load((pipeline / "data/impact/stuck_actuator.yaml").read_text())
+    committed = impact["faults"]["stuck_actuator"]["tiers"]
+    assert [(r["fault"], r["tier"]) for r in tiers] == [("stuck_actuator", t) for t in committed]
+    for row in tiers:
+        tier = committed[row["tier"]]
+        assert float(row["level"]) == pytest.approx(tier["level"])
+        if tier["severity"] == "unreachable":
+            assert row["verdict"] == "not measured"
+            continue
+        assert float(row["σ"]) == pytest.approx(tier["severity"], rel=1e-3)
+        assert row["episodes"] == str(EPISODES)
+        assert row["verdict"] == "within 0.02" or row["verdict"].startswith("misses by ")
+
+    result = json.loads(out.read_text())
+    assert [r["n_streams"] for r in result["false_alarms"]] == [STREAMS] * len(DETECTORS)
+    assert result["tiers"]["returns"]["n_clean"] == EPISODES
+    assert result["tiers"]["returns"]["n_random"] == EPISODES
+    measured = [r for r in result["tiers"]["rows"] if r["severity"] != "unreachable"]
+    assert measured and all(r["n_episodes"] == EPISODES for r in measured)
+    # The thresholds are the committed ones of tier_results.yaml.
+    records = yaml.safe_load((pipeline / "reports/tier_results.yaml").read_text())["records"]
+    committed_thresholds = {r["detector"]: r["operating_point"]["threshold"] for r in records}
+    assert {r["detector"]: r["threshold"] for r in result["false_alarms"]} == committed_thresholds
+
+
+@pytest.mark.parametrize(
+    ("offset", "overlapped"),
+    [(0, "ID streams"), (10_000 - STREAMS + 1, "evaluation streams"),
+     (20_000, "tier calibration streams"), (50, "policy's impact episodes"),
+     (100_000, "policy's tuning episodes")],
+)  # fmt: skip
+def test_an_offset_onto_protocol_seeds_is_refused(pipeline, offset, overlapped):
+    done = fresh_check(pipeline, "--streams", str(STREAMS), "--episodes", str(EPISODES),
+                       "--seed-offset", str(offset))  # fmt: skip
+    assert done.returncode == 2
+    assert done.stdout == ""
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert lines[0].startswith(f"error: --seed-offset {offset}: ")
+    assert overlapped in lines[0]
+
+
+def test_a_missing_output_is_one_line_naming_its_restore(pipeline, tmp_path):
+    bare = tmp_path / "bare"
+    (bare / "models").mkdir(parents=True)
+    shutil.copy2(pipeline / "params.yaml", bare / "params.yaml")
+    shutil.copy2(pipeline / "models" / "policy.pt", bare / "models" / "policy.pt")
+    done = fresh_check(bare, "--streams", "1", "--episodes", "0")
+    assert done.returncode == 1
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert "reports/tier_results.yaml" in lines[0] and "dvc checkout" in lines[0]
