@@ -540,6 +540,7 @@ def rendered_detector(pipeline_dir: Path, root: Path, detector: str) -> str:
     if is_recorded(params):
         _as_recorded(stages)
     _add_stamps(stages)
+    _add_policy_dep(stages, detector, params, Project(root.resolve(), pipeline_dir.resolve()))
     if pipeline_dir.resolve() != root.resolve():
         _read_merged_params(stages, params)
     for name, body in _stage_bodies(stages):
@@ -547,6 +548,46 @@ def rendered_detector(pipeline_dir: Path, root: Path, detector: str) -> str:
             stages[name]["foreach"] = _flow(_values(stages[name]["foreach"], params))
         body.insert(0, "wdir", WDIR)
     return _dumped(document).replace("${detector}", detector)
+
+
+def policy_file(detector: str, params: dict[str, Any], project: Project) -> str | None:
+    """The policy file a detector's fit reads (SPEC §20), relative to the pipeline's directory,
+    or None: a `PolicyDetector`'s `policy` parameter, its params' value or else its class's
+    default (`POLICY`).
+
+    Only oodrl's own classes are imported to ask (light: no torch, no library); a library's
+    class (PyOD's, scikit-learn's: seconds to import) is not, and cannot subclass
+    PolicyDetector. A plugin of the project (a `class:` module in the pipeline's directory) is
+    not imported either: its fit reads a policy file when its params name one in `policy`.
+    """
+    from oodrl.registry import import_path
+
+    path = _component_path("detector", detector, params)
+    module = path.partition(":")[0]
+    block = (params.get("detectors") or {}).get(detector) or {}
+    named = block.get("policy") if isinstance(block.get("policy"), str) else None
+    if module.partition(".")[0] != CLI_MODULE.partition(".")[0]:
+        return named if project.module_file(module) is not None else None
+    from oodrl.detectors.policy_view import PolicyDetector
+
+    cls = import_path(path)
+    if not (isinstance(cls, type) and issubclass(cls, PolicyDetector)):
+        return None
+    return named or str(cls.policy)
+
+
+def _add_policy_dep(
+    stages: dict[str, Any], detector: str, params: dict[str, Any], project: Project
+) -> None:
+    """A detector that reads the policy (`policy_file`) has its fit stage depend on the file:
+    a retrained policy refits it (the fitted detector keeps the policy's network)."""
+    policy = policy_file(detector, params, project)
+    if policy is None:
+        return
+    for _, body in _stage_bodies(stages):
+        kind = stage_kind(body["cmd"])
+        if kind is not None and kind[0] == "fit" and policy not in body["deps"]:
+            body["deps"].append(policy)
 
 
 def is_recorded(params: dict[str, Any]) -> bool:
