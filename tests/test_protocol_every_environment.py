@@ -2,8 +2,9 @@
 
 For each environment: its own params (pipeline/<env>/params.yaml, extending the shared ones)
 shrunk to a few short streams; collection of the clean sets and of all nine injectors at the
-headline and one sweep severity; every detector of the suite (the paper's eight and the library
-ones) fitted, calibrated and scoring every set;
+headline and one sweep severity; every detector of the suite (the paper's eight, the library
+ones and SPEC §20's, those reading the policy given the environment's) fitted, calibrated and
+scoring every set;
 the metrics stage's results. Environments whose policy is not committed yet run an untrained
 exported actor of the right shape: the protocol, not the policy, is under test here.
 """
@@ -57,14 +58,25 @@ def untrained_actor(env_id: str, path: Path) -> Path:
     return path
 
 
+def reading(data: dict, policy: Path) -> dict:
+    """The detectors that read the policy (SPEC §20) read this environment's: their `policy`,
+    relative to a pipeline's directory, would name the root's from here."""
+    from oodrl.detectors import DETECTORS
+    from oodrl.detectors.policy_view import PolicyDetector
+
+    names = data["benchmark"]["detectors"]
+    readers = [n for n in names if n in DETECTORS and issubclass(DETECTORS.get(n), PolicyDetector)]
+    return {"detectors": {n: {"policy": str(policy)} for n in readers}}
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("env_id", list(PIPELINE_DIRS))
 def test_the_protocol_runs_on_every_environment(env_id, tmp_path: Path):
     data = read_params_data(ROOT / PIPELINE_DIRS[env_id] / "params.yaml")
-    params = parse_params(merge_params(data, TINY))
     policy = policy_path(env_id, ROOT)
     if not policy.is_file():
         policy = untrained_actor(env_id, tmp_path / "policy.pt")
+    params = parse_params(merge_params(merge_params(data, TINY), reading(data, policy)))
     collect.collect_id(params, policy, tmp_path / "id.zarr")
     collect.collect_eval(params, policy, tmp_path / "eval.zarr")
     for injector in params.benchmark.injectors:
