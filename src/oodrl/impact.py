@@ -4,8 +4,10 @@ For a policy π and an online fault f, R̃(σ) = (R(σ) − R_rand) / (R_clean �
 mean return over whole episodes with f active from their first step, R_clean the same without
 the fault, R_rand a uniformly random policy's. Episodes run in the collector
 (`oodrl.envs.collect`) with the fault's live hooks (`oodrl.injectors.apply`), one episode per
-stream: each stream is as long as the environment's time limit, and its first episode (which
-therefore always ends within it) is the one counted.
+stream: each stream may run as long as the environment's time limit, so its first episode always
+ends within it; that episode is the one counted, and the stream stops there (the collector's
+`first_episode`: the same returns as simulating the rest of the horizon, at a third of the steps
+on LunarLander).
 
 Seeds, never the protocol's (ID `seed + i`, evaluation `seed + 10000 + j`, policy tuning
 `seed + 100000 + i`, final policy check 1000000 + i): π's episodes reset from
@@ -481,17 +483,26 @@ def paired_estimate(
     return Estimate(float(severity), float(value), (float(low), float(high)), int(loss.size))
 
 
+def tier_tolerance(level: float, tolerance: float) -> float:
+    """How close to its level a tier's R̃ must be: `tiers.search.tolerance`, but at most half
+    the tier's loss 1 − level, so that no tolerance admits a severity that costs nothing (for
+    `benign`, 0.005: R̃ = 1.0 is never within it)."""
+    return min(tolerance, (1.0 - level) / 2)
+
+
 def _on_target(estimate: Estimate, level: float, tolerance: float) -> bool:
-    return abs(estimate.normalised - level) <= tolerance
+    return abs(estimate.normalised - level) <= tier_tolerance(level, tolerance)
 
 
 def _verified(estimate: Estimate, level: float, floor: float, tolerance: float, stepped: bool):
     """A continuous tier's verification holds when R̃ there is within the tolerance of its
-    level or its CI covers the level; a stepped tier's, when its CI meets the tier's band
-    [the next tier's level (SEVERE_FLOOR after severe), its own level]."""
+    level (`tier_tolerance`) or its CI covers the level; a stepped tier's, when its CI meets the
+    tier's band [the next tier's level (SEVERE_FLOOR after severe), its own level] widened by
+    the tolerance."""
     low, high = estimate.ci
     if stepped:
-        return bool(low <= level + tolerance and high >= floor - tolerance)
+        widen = tier_tolerance(level, tolerance)
+        return bool(low <= level + widen and high >= floor - widen)
     return bool(_on_target(estimate, level, tolerance) or low <= level <= high)
 
 
@@ -507,7 +518,8 @@ def search_tier(
     point is bracketed by [0, first point]), then probe inside the bracket by safeguarded
     regula falsi (the probe lands between 10% and 90% of the bracket), each probe measured on
     fresh episodes (`measure(σ, probe index)`), narrowing the bracket on the side the probe
-    falls, until a probe's R̃ is within the tolerance of the level or the probes run out.
+    falls, until a probe's R̃ is within the tolerance of the level (`tier_tolerance`) or the
+    probes run out.
 
     Returns (σ, probes, converged): σ is a probed severity, where R̃ was measured (the first
     on target, else the closest to the level); None when the curve never reaches the level.
