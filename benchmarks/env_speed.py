@@ -4,7 +4,7 @@
 
 For each environment, steps/s of
 - the bare environment stepping random actions from its action space (resets included);
-- the batched collector (one block of 16 streams, one worker) driven by a fixed random linear
+- the batched collector (one job of 16 streams, one worker) driven by a fixed random linear
   policy made with oodrl's own policy classes (argmax or tanh actor, one layer), clean;
 - the same with a `dynamics_scaling` fault (severity 0.1) from the first step, so every step
   also reads the simulator's state vector twice and writes it back once.

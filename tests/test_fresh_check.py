@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from oodrl.config import parse_params, read_params_data
-from oodrl.testing.pipeline import copy_project, repro
+from oodrl.testing.pipeline import TINY_TIERS, copy_project, repro
 
 pytestmark = pytest.mark.slow
 
@@ -26,14 +26,7 @@ FAULTS = ["stuck_actuator"]
 STREAMS, EPISODES = 7, 3
 
 
-def _known(model, values: dict) -> dict:
-    """The entries of `values` that the params section `model` has (the tier block grows)."""
-    return {key: value for key, value in values.items() if key in model.model_fields}
-
-
 def tiny_params(default: dict) -> dict:
-    from oodrl.config import TiersConfig
-
     params = json.loads(json.dumps(default))
     params["env"]["T"] = 60
     params["data"].update(n_id=4, n_ood=3)
@@ -41,13 +34,7 @@ def tiny_params(default: dict) -> dict:
     params["benchmark"] = {"detectors": DETECTORS, "injectors": FAULTS}
     params["metrics"]["n_boot"] = 20
     params["executor"]["workers"] = 1
-    tiers = {"grid": [0.5, 1.0], "episodes": 2, "n_calibration": 19,
-             "threshold_rule": "episode_max", "n_streams": 3, "n_audit": 3}  # fmt: skip
-    params["tiers"].update(_known(TiersConfig, tiers))
-    search = TiersConfig.model_fields.get("search")
-    if search is not None and search.annotation is not None:
-        small = {"probe_episodes": 2, "max_probes": 1, "verify_episodes": 2}
-        params["tiers"]["search"] = _known(search.annotation, small)
+    params["tiers"].update(TINY_TIERS)
     # Every key written out, defaults included: a stage's `params:` may name a key the shared
     # params file leaves to its default, and DVC reads only what the file holds.
     return parse_params(params, components=False).model_dump(mode="json")

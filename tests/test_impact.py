@@ -20,6 +20,7 @@ from oodrl.impact import (
 )
 from oodrl.injectors.online import DynamicsScaling
 from oodrl.report.impact import impact_table, plot_impact_curves
+from oodrl.testing.pipeline import TINY_TIERS
 
 ENV_ID, LENGTH, DRIFT, COST = "OodrlToyDrift-v0", 10, 0.1, 0.3
 GRID = [0.2, 0.4, 0.6, 0.8, 1.0]
@@ -220,7 +221,9 @@ def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
     from oodrl.cli import app
 
     monkeypatch.chdir(tmp_path)
-    (tmp_path / "params.yaml").write_text((repo_root / "params.yaml").read_text())
+    params = yamlio.load((repo_root / "params.yaml").read_text())
+    params["tiers"].update(TINY_TIERS)  # a two-probe search on a few episodes
+    (tmp_path / "params.yaml").write_text(yamlio.dump(params))
     policy = str(repo_root / "models" / "policy.pt")
 
     def impact(name: str, *extra: str):
@@ -278,9 +281,11 @@ def _returns(normalised: dict[float, float]) -> Returns:
 
 def test_a_stepped_fault_takes_each_tier_at_a_step_that_lands_in_its_band():
     stepped = impact_record(_returns(STEPPED), n_boot=50, stepped=True)["tiers"]
-    # mild: the first step at or below 0.95 (R̃ 0.85) is already below 0.90, where moderate
-    # begins: no step costs 5-10% of the return. moderate and severe land in their bands.
+    # benign: the first step (R̃ 0.97) lands in [0.95, 0.99]. mild: the first step at or below
+    # 0.95 (R̃ 0.85) is already below 0.90, where moderate begins: no step costs 5-10% of the
+    # return. moderate and severe land in their bands.
     assert {name: t["severity"] for name, t in stepped.items()} == {
+        "benign": 0.125,
         "mild": UNREACHABLE,
         "moderate": 0.375,
         "severe": 0.625,

@@ -172,3 +172,21 @@ def test_try_runs_only_the_detectors_stages_and_prints_its_ranks(built_suite):
 
     again = _try(built_suite, "hbos", "--class", "pyod.models.hbos:HBOS")
     assert again.exit_code == 2 and "'hbos' is already a detector" in again.output
+
+
+def test_an_environment_listing_its_own_detectors_gets_the_new_one_appended(repo_root):
+    """The SAC environments list the suite's detectors without the policy-view ones (a list in
+    params replaces the one it extends): `suite try` appends the new detector there, and leaves
+    a params file without a list of its own untouched."""
+    from oodrl.suite_try import add_to_own_list
+
+    own = repo_root / "pipeline" / "hopper" / "params.yaml"
+    text = add_to_own_list(own.read_text(), "my_detector")
+    data = yaml.safe_load(text)
+    before = yaml.safe_load(own.read_text())
+    assert data["benchmark"]["detectors"] == [*before["benchmark"]["detectors"], "my_detector"]
+    assert {k: v for k, v in data.items() if k != "benchmark"} == {
+        k: v for k, v in before.items() if k != "benchmark"
+    }  # nothing else changed, nulls included
+    inherits = repo_root / "pipeline" / "hopper_policy1" / "params.yaml"  # extends hopper's
+    assert add_to_own_list(inherits.read_text(), "my_detector") is None

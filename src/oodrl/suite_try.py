@@ -4,7 +4,9 @@
    the cheap linear-system trajectories with discrete and with continuous actions), built from
    the block params would hold, in seconds and before anything is written.
 2. The suite's params get the detector (`benchmark.detectors` and a `detectors.NAME` block,
-   like the library blocks there) and the pipelines' DVC files are regenerated as `oodrl
+   like the library blocks there; an environment that lists its own `benchmark.detectors`, as
+   the SAC ones do without the policy-view detectors, gets it appended to that list) and the
+   pipelines' DVC files are regenerated as `oodrl
    pipeline write` does: in a scratch clone of HEAD first, where every run's params are then
    validated and the change is committed, so that the checkout is untouched until every
    pipeline has run.
@@ -217,18 +219,28 @@ class Staged:
     targets: dict[str, tuple[str, ...]]
 
 
-def add_to_params(text: str, name: str, block: dict[str, Any], inherited: list[str]) -> str:
-    """The suite's params text with the detector added, comments and order kept."""
-    import io
-
+def _round_trip():
+    """A YAML codec that keeps a params file's comments, order and quotes."""
     from ruamel.yaml import YAML
-    from ruamel.yaml.comments import CommentedMap, CommentedSeq
-    from ruamel.yaml.scalarstring import DoubleQuotedScalarString
 
     yaml = YAML()
     yaml.indent(mapping=2, sequence=4, offset=2)
     yaml.width = 4096
     yaml.preserve_quotes = True
+    yaml.representer.add_representer(  # `null` stays `null`, not an empty value
+        type(None), lambda r, _: r.represent_scalar("tag:yaml.org,2002:null", "null")
+    )
+    return yaml
+
+
+def add_to_params(text: str, name: str, block: dict[str, Any], inherited: list[str]) -> str:
+    """The suite's params text with the detector added, comments and order kept."""
+    import io
+
+    from ruamel.yaml.comments import CommentedMap, CommentedSeq
+    from ruamel.yaml.scalarstring import DoubleQuotedScalarString
+
+    yaml = _round_trip()
     document = yaml.load(text)
     benchmark = document.setdefault("benchmark", CommentedMap())
     if "detectors" not in benchmark:  # inherited from the root's params: listed here now
@@ -238,6 +250,26 @@ def add_to_params(text: str, name: str, block: dict[str, Any], inherited: list[s
     entry = CommentedMap(block)
     entry["class"] = DoubleQuotedScalarString(block["class"])
     detectors[name] = entry
+    buffer = io.StringIO()
+    yaml.dump(document, buffer)
+    return buffer.getvalue()
+
+
+def add_to_own_list(text: str, name: str) -> str | None:
+    """An environment's params text with the detector appended to the `benchmark.detectors`
+    list it sets itself (the environments that leave some suite detectors out, e.g. the
+    policy-view ones where the policy has no value head); None when it sets none."""
+    import io
+
+    yaml = _round_trip()
+    document = yaml.load(text)
+    listed = (document.get("benchmark") or {}).get("detectors") if document else None
+    if listed is None:
+        return None
+    listed.append(name)
+    last = len(listed) - 2  # the blank line or comment after the list stays after it
+    if last in listed.ca.items:
+        listed.ca.items[last + 1] = listed.ca.items.pop(last)
     buffer = io.StringIO()
     yaml.dump(document, buffer)
     return buffer.getvalue()
@@ -289,6 +321,10 @@ def stage(root: Path, name: str, block: dict[str, Any], runs: Sequence[str], scr
     inherited = _listed(read_params_data(clone / SUITE_PARAMS))
     params_file = clone / SUITE_PARAMS
     params_file.write_text(add_to_params(params_file.read_text(), name, block, inherited))
+    for own in sorted(params_file.parent.glob("*/params.yaml")):
+        text = add_to_own_list(own.read_text(), name)
+        if text is not None:
+            own.write_text(text)
     _run(clone, {}, "oodrl", "pipeline", "write", "--root", ".")
     command = [sys.executable, "-c", VALIDATE, name, *runs]
     done = _spawn(command, clone, task_environment(clone))
