@@ -68,12 +68,15 @@ def test_stage_verbs_refuse_unlisted_components(repo_root):
     ],
 )
 def test_score_refuses_sets_that_are_not_one_stage_in_one_line(repo_root, sets, given):
-    """A clean stage's sets (--eval, --calibration) or one injector's (--ood, --sweep, --tiers)."""
+    """A clean stage's sets (--eval, --calibration, --audit, --twins) or one injector's (--ood,
+    --sweep, --tiers)."""
     args = ["score", "kde_density", "--model", "m.pkl", "--scores", "scores", *sets,
             "--params", str(repo_root / "params.yaml")]  # fmt: skip
     result = runner.invoke(app, args)
     assert result.exit_code == 2
-    assert "score needs any of --eval (clean set) and --calibration" in result.output
+    assert "score needs any of --eval (clean set), --calibration, --audit and --twins" in (
+        result.output
+    )
     assert given in result.output and result.output.count("\n") == 1
 
 

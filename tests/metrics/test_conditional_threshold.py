@@ -144,7 +144,6 @@ def test_the_rule_and_its_delta_are_hashed(default_params):
     assert params_hash(parse_params(default_params)) != params_hash(default)
 
 
-
 @pytest.mark.parametrize(("alarmed", "n"), [(0, 200), (3, 200), (11, 200), (200, 200), (7, 40)])
 def test_the_achieved_false_alarm_rate_and_its_clopper_pearson_interval(alarmed, n):
     alarms = np.zeros((n, 30), bool)

@@ -23,6 +23,10 @@ def test_leaderboard_reads_the_pipelines_results(built_repo: Path, tmp_path: Pat
         "protocol_version", 1
     )
     tiers = built_repo / "reports" / "tier_results.yaml"
-    if tiers.is_file():  # the pipeline scores the impact tiers: they lead
+    if tiers.is_file():  # the pipeline scores the impact tiers: they lead, harmful ones first
+        from oodrl.metrics.leaderboard import tier_order
+
         board = run_leaderboard({"LunarLander-v3": tiers}, tmp_path / "tiers", 50, 0.95, 0)
-        assert board.lead[0].startswith("detection_rate@") and board.tiers[0] == "mild"
+        # Which tiers the tiny search reaches and verifies varies; the order never does.
+        assert list(board.tiers) == tier_order(board.tiers)
+        assert board.lead[0].startswith("detection_rate@") and board.lead[1] == board.tiers[0]
