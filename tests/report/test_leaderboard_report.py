@@ -263,3 +263,25 @@ def test_benign_cells_rank_the_quietest_first_and_unverified_cells_are_left_out(
     assert "## Detects what hurts, stays quiet on what does not" in table
     assert "1 cell whose tier's verification missed its level" in table
     assert "Hopper-v5/0/gradual_drift/benign" in table
+
+
+def test_the_floor_is_marked_and_detectors_not_above_it_are_named(tmp_path: Path):
+    """SPEC §20: `random_scores` is the floor; a detector whose P(beats the floor) has its CI
+    above ½ is above it, one that scores like the floor is named as not above it."""
+    strength = {"cusum": 0.9, "kde_density": 0.5, "random_scores": 0.5}
+    results = {
+        env: write_results(
+            tmp_path / env / "results.yaml", seed, strength, tiers=("mild",), detection=True,
+            extra={"protocol_version": 3},
+        )  # fmt: skip
+        for seed, env in enumerate(("CartPole-v1", "Hopper-v5", "Pendulum-v1"))
+    }
+    board = run_leaderboard(results, tmp_path / "out", n_boot=200, ci=0.95, seed=0)
+    table = (tmp_path / "out" / "leaderboard.md").read_text()
+    rows = table_rows(table, "## Tier `mild`: mean detection_rate@100")
+    assert "random_scores (floor)" in rows
+    mild = board.overall[("detection_rate@100", "mild")]
+    assert mild.improvement[("cusum", "random_scores")].ci_low > 0.5
+    assert "1 of 2 do. Not above the floor: kde_density." in table
+    page = json.loads((tmp_path / "out" / "leaderboard.json").read_text())
+    assert page["floor_detector"] == "random_scores"

@@ -80,6 +80,9 @@ PROFILE_TAUS: tuple[float, ...] = tuple(round(0.5 + 0.01 * i, 2) for i in range(
 TRIVIAL_DETECTORS = ("time_index", "episode_return")
 #: A task is flagged when a trivial detector's matched AUROC there reaches this.
 TRIVIAL_THRESHOLD = 0.9
+#: The floor every ranking shows (SPEC §20): scores that ignore the data, thresholded like any
+#: detector's, so its detection rate is what alarms alone buy.
+FLOOR_DETECTOR = "random_scores"
 #: The metric every results file holds per episode.
 MATCHED_AUROC = "matched_auroc"
 
@@ -379,6 +382,14 @@ def ranking_stability(cells: CellValues) -> Stability:
         for q in policies[i + 1 :]
     }
     return Stability(policies, tasks, iqm, winners, kendall)
+
+
+def above_floor(board: Aggregate, floor: str = FLOOR_DETECTOR) -> dict[str, bool] | None:
+    """Per detector, whether it beats the floor: P(detector > floor) on a random cell, whose
+    stratified-bootstrap CI lies above ½. None when the floor is not in the board."""
+    if floor not in board.detectors:
+        return None
+    return {d: board.improvement[(d, floor)].ci_low > 0.5 for d in board.detectors if d != floor}
 
 
 def trivial_flags(

@@ -24,6 +24,7 @@ from oodrl import yamlio
 from oodrl.metrics.leaderboard import (
     BENIGN_TIER,
     FIRST_POLICY,
+    FLOOR_DETECTOR,
     HEADLINE_TIER,
     MATCHED_AUROC,
     TRIVIAL_DETECTORS,
@@ -32,6 +33,7 @@ from oodrl.metrics.leaderboard import (
     Board,
     Cell,
     Interval,
+    above_floor,
     policy_key,
 )
 from oodrl.metrics.stamp import UNSTAMPED_VERSION, one_protocol_version
@@ -221,6 +223,21 @@ def _runs_note(board: Aggregate) -> str:
     return f"{low} policies per cell" if low == high else f"{low}–{high} policies per cell"
 
 
+def _floor_lines(overall: Aggregate, label: str) -> list[str]:
+    """Which detectors beat the floor (`FLOOR_DETECTOR`) on this tier's cells, and which do not."""
+    beats = above_floor(overall)
+    if beats is None:
+        return []
+    below = [d for d in overall.ranked() if d in beats and not beats[d]]
+    return [
+        f"Floor: `{FLOOR_DETECTOR}` (scores that ignore the data). A detector beats it when "
+        f"P(it > {FLOOR_DETECTOR} on a random cell) has its 95% CI above ½ ({label}); "
+        f"{len(beats) - len(below)} of {len(beats)} do. "
+        + (f"Not above the floor: {', '.join(below)}." if below else "All are above it."),
+        "",
+    ]
+
+
 def _section(
     board: Board, metric: str, tier: str, alpha: float | None, uncertified: Sequence[str] = ()
 ) -> list[str]:
@@ -238,6 +255,7 @@ def _section(
     rows = []
     for d in order:
         name = marked(d, uncertified) + (" (trivial signal)" if d in TRIVIAL_DETECTORS else "")
+        name += " (floor)" if d == FLOOR_DETECTOR else ""
         row = [name, *(f"{overall.table[d][e]:.3f}" for e in envs)]
         row += [_interval(overall.iqm[d]), _interval(overall.mean[d])]
         if unflagged is not None:
@@ -262,6 +280,7 @@ def _section(
     ]  # fmt: skip
     if harmless:
         return lines
+    lines += _floor_lines(overall, label)
     families = board.families[(metric, tier)]
     names = list(families)
     lines += [f"### By fault family (IQM of {label} [95% CI])", ""]

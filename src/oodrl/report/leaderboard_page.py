@@ -26,6 +26,7 @@ import numpy as np
 
 from oodrl.metrics.leaderboard import (
     FAULT_FAMILIES,
+    FLOOR_DETECTOR,
     OTHER_FAMILY,
     TRIVIAL_DETECTORS,
     Board,
@@ -143,6 +144,7 @@ def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int
             for metric in board.metrics
         },
         "trivial_detectors": [d for d in TRIVIAL_DETECTORS if d in detectors],
+        "floor_detector": FLOOR_DETECTOR if FLOOR_DETECTOR in detectors else None,
         "uncertified_detectors": list(inputs.uncertified),
         "cells": cells,
         "impact": [
