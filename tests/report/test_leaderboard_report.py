@@ -271,7 +271,11 @@ def test_the_floor_is_marked_and_detectors_not_above_it_are_named(tmp_path: Path
     strength = {"cusum": 0.9, "kde_density": 0.5, "random_scores": 0.5}
     results = {
         env: write_results(
-            tmp_path / env / "results.yaml", seed, strength, tiers=("mild",), detection=True,
+            tmp_path / env / "results.yaml",
+            seed,
+            strength,
+            tiers=("mild",),
+            detection=True,
             extra={"protocol_version": 3},
         )  # fmt: skip
         for seed, env in enumerate(("CartPole-v1", "Hopper-v5", "Pendulum-v1"))
