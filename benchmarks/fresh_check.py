@@ -30,8 +30,13 @@ It rolls FRESH seeds and prints two markdown tables (`--json OUT` writes them to
     R_rand on M fresh episodes each (`clean_returns`, `random_policy_returns`), the episode
     length the impact document's `horizon`. Its 95% interval is the impact stage's percentile
     bootstrap (`metrics.n_boot` replicates; the policy's episodes resampled jointly over the
-    clean run and the fault, the random policy's on their own). Verdict: "within 0.02" iff
-    |R̃ − level| ≤ 0.02, else "misses by ±d"; whether the level lies in the interval is shown.
+    clean run and the fault, the random policy's on their own). The verdict judges the interval
+    against the band level ± 0.02, since M episodes measure R̃ only to within their interval:
+    "within 0.02" iff the interval lies inside the band (shown to hold), "misses by ±d" iff it
+    lies wholly outside (shown to fail; d = R̃ − level), else "undecided at M episodes" (the
+    point estimate may fall either side; more episodes decide it). A stepped fault's tier is a
+    step, not a level the search can hit (SPEC §19): its band is [the next tier's level (0.5
+    after severe), its own level] widened by 0.02, judged the same way and marked "(step)".
 
 Episodes are collected by the project's collector (`oodrl.envs.collect.collect`, the impact
 functions) and scored by the project's scoring code (`oodrl.scoring.score_set`), with the
@@ -238,12 +243,38 @@ def committed_tiers(faults: list[str]) -> tuple[dict[str, dict], int | None]:
     for fault in faults:
         document = read_impact(impact_path(Path(IMPACT_DIR), fault), fault)
         horizon = horizon or document.get("horizon")
+        levels = {name: float(t.get("level", LEVELS.get(name, math.nan)))
+                  for name, t in (document["fault"].get("tiers") or {}).items()}  # fmt: skip
+        stepped = "severity_steps" in document["fault"]
         tiers[fault] = {
-            name: {"level": float(t.get("level", LEVELS.get(name, math.nan))),
-                   "severity": t["severity"]}
+            name: {"level": levels[name], "severity": t["severity"],
+                   "band": tier_band(name, levels, stepped)}
             for name, t in (document["fault"].get("tiers") or {}).items()
         }  # fmt: skip
     return tiers, horizon
+
+
+def tier_band(name: str, levels: dict[str, float], stepped: bool) -> tuple[float, float] | None:
+    """The band a stepped fault's tier must fall in (see the module docstring); None for a
+    continuous fault, whose band is its level ± TOLERANCE."""
+    from oodrl.impact import SEVERE_FLOOR
+
+    if not stepped:
+        return None
+    floor = max((v for v in levels.values() if v < levels[name]), default=SEVERE_FLOOR)
+    return floor - TOLERANCE, levels[name] + TOLERANCE
+
+
+def tier_verdict(low: float, high: float, value: float, level: float, band, n: int) -> str:
+    """Judge R̃'s interval [low, high] from n episodes against the tier's band (see the module
+    docstring)."""
+    lo, hi = band if band is not None else (level - TOLERANCE, level + TOLERANCE)
+    step = " (step)" if band is not None else ""
+    if lo - 1e-12 <= low and high <= hi + 1e-12:
+        return f"within {TOLERANCE}{step}" if band is None else "within its band (step)"
+    if high < lo or low > hi:
+        return f"misses by {value - level:+.3f}{step}"
+    return f"undecided at {n} episodes{step}"
 
 
 # -- (a) false alarms ------------------------------------------------------------------------------
@@ -356,8 +387,9 @@ def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, 
                 "fault": fault, "tier": name, "level": level, "severity": severity,
                 "n_episodes": int(faulty.size), "normalised": value, "ci": [low, high],
                 "difference": gap, "level_in_ci": bool(low <= level <= high),
-                "verdict": "within 0.02" if abs(gap) <= TOLERANCE + 1e-12
-                else f"misses by {gap:+.3f}",
+                "verdict": tier_verdict(
+                    low, high, value, level, tiers[fault][name]["band"], faulty.size
+                ),
             })  # fmt: skip
         measured = ", ".join(
             f"{r['tier']} σ {r['severity']:.4g} R̃ {r['normalised']:.3f} "
@@ -438,7 +470,9 @@ def report(result: dict[str, Any]) -> str:
     if result.get("tiers") is not None:
         summary, rows = result["tiers"]["returns"], result["tiers"]["rows"]
         measured = [r for r in rows if r["severity"] != "unreachable"]
-        ok = sum(r["verdict"] == "within 0.02" for r in measured)
+        verdicts = [r["verdict"] for r in measured]
+        shown = sum(v.startswith("within") for v in verdicts)
+        missed = sum(v.startswith("misses") for v in verdicts)
         out += [
             f"## Tiers: R̃ at the committed severities (data/impact/<fault>.yaml), "
             f"{summary['n_clean']} fresh whole episodes per condition",
@@ -449,9 +483,12 @@ def report(result: dict[str, Any]) -> str:
             "",
             tier_table(rows),
             "",
-            f"{ok} of {len(measured)} reachable tiers within {TOLERANCE} of their level "
-            f"(each R̃ from {summary['n_clean']} episodes under the fault, "
-            f"{summary['n_clean']} clean, {summary['n_random']} random).",
+            f"Of {len(measured)} reachable tiers, {shown} shown within {TOLERANCE} of their level "
+            f"(a step: within its band), {missed} shown to miss it, "
+            f"{len(measured) - shown - missed} undecided; each R̃ from {summary['n_clean']} "
+            f"episodes under the fault, {summary['n_clean']} clean, {summary['n_random']} random; "
+            f"{sum(abs(r['difference']) <= TOLERANCE + 1e-12 for r in measured)} point estimates "
+            f"within {TOLERANCE} of the level.",
             "",
         ]
     return "\n".join(out)

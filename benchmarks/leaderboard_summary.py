@@ -1,0 +1,178 @@
+"""What the suite's leaderboard says about chosen detectors, read from the committed results.
+
+    python benchmarks/leaderboard_summary.py [--suite pipeline/suite/reports]
+        [--pipelines pipeline] [--metric detection_rate@100] [--tiers benign mild moderate]
+        [--detectors D ...] [--versus cusum] [--at mild] [--n-boot 2000]
+
+Reads the suite's leaderboard.json (the leaderboard stage's output, git-tracked) and each run's
+reports/tier_results.yaml under --pipelines, computes nothing the pipeline has not measured,
+and prints markdown:
+
+1. the top five per tier with the IQM of the metric and its 95% CI, as the leaderboard ranks
+   them (`benign` quietest first: an alarm on a harmless shift is a cost);
+2. where each detector of --detectors (default: SPEC §20's) lands at each tier: rank among
+   all, IQM [95% CI];
+3. each detector's false-alarm rate achieved on its run's audit set (200 clean streams used for
+   nothing else, SPEC §19): over the runs, the median rate, the range, and the runs whose
+   Clopper-Pearson interval lies above α;
+4. where each detector beats --versus at tier --at, by environment and fault family: the mean
+   over the group's cells (each (policy, fault) cell once) of the detector's score minus the
+   versus detector's, with a 95% percentile bootstrap over the group's cells (paired: both
+   scores of a cell move together); "beats" when the interval lies above 0. A group of fewer
+   than 5 cells is counted, not judged.
+
+Every number says how many runs or cells stand behind it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+#: SPEC §20's detectors: the policy view, value-function surprise, a recurrent predictor, an
+#: anytime-valid test and the two baselines.
+SECTION_20 = (
+    "q_margin", "q_entropy", "q_energy", "max_softmax", "fqe_td", "riqn",
+    "conformal_martingale", "deedee", "random_scores",
+)  # fmt: skip
+BENIGN = "benign"
+#: A group of fewer cells gives no verdict: a bootstrap over two or three cells is no interval.
+MIN_CELLS = 5
+
+
+def interval(d: dict) -> str:
+    return f"{d['value']:.3f} [{d['ci_low']:.3f}, {d['ci_high']:.3f}]"
+
+
+def ranked(iqm: dict[str, dict], tier: str) -> list[str]:
+    """The leaderboard's order: highest IQM first, `benign` lowest first; ties by name."""
+    sign = 1 if tier == BENIGN else -1
+    return sorted(iqm, key=lambda d: (sign * iqm[d]["value"], d))
+
+
+def top_five(board: dict, metric: str, tiers: list[str]) -> list[str]:
+    lines = []
+    for tier in tiers:
+        iqm = board["iqm"][metric].get(tier)
+        if not iqm:
+            continue
+        n_cells = sum(1 for c in board["cells"] if c["tier"] == tier)
+        order = "quietest first" if tier == BENIGN else "highest first"
+        lines += [f"### Top five at `{tier}` ({order}; IQM over {n_cells} (policy, cell) scores)",
+                  "", "| rank | detector | IQM [95% CI] |", "|---:|---|---:|"]  # fmt: skip
+        lines += [f"| {i} | {d} | {interval(iqm[d])} |"
+                  for i, d in enumerate(ranked(iqm, tier)[:5], 1)]  # fmt: skip
+        lines.append("")
+    return lines
+
+
+def landing(board: dict, metric: str, tiers: list[str], detectors: list[str]) -> list[str]:
+    present = [t for t in tiers if board["iqm"][metric].get(t)]
+    lines = ["### Where each detector lands (rank among all, IQM [95% CI])", "",
+             "| detector | " + " | ".join(present) + " |",
+             "|---|" + "---:|" * len(present)]  # fmt: skip
+    for d in detectors:
+        row = []
+        for tier in present:
+            iqm = board["iqm"][metric][tier]
+            order = ranked(iqm, tier)
+            row.append(f"{order.index(d) + 1}/{len(order)}: {interval(iqm[d])}" if d in iqm
+                       else "—")  # fmt: skip
+        lines.append(f"| {d} | " + " | ".join(row) + " |")
+    return [*lines, ""]
+
+
+def false_alarms(pipelines: Path) -> list[str]:
+    rates, above, alarmed, streams, alpha = defaultdict(list), defaultdict(int), {}, {}, set()
+    runs = sorted(pipelines.glob("*/reports/tier_results.yaml"))
+    for path in runs:
+        document = yaml.safe_load(path.read_text())
+        alpha.add(document["alpha"])
+        for d, audit in (document.get("false_alarm_audit") or {}).items():
+            rates[d].append(audit["rate"])
+            above[d] += audit["ci"][0] > document["alpha"]
+            alarmed[d] = alarmed.get(d, 0) + audit["n_alarmed"]
+            streams[d] = streams.get(d, 0) + audit["n_streams"]
+    (a,) = alpha or {float("nan")}
+    lines = [f"### False-alarm rate achieved on the audit sets (α = {a:g}; {len(runs)} runs)", "",
+             "| detector | runs | median | range | pooled (alarmed/streams) | runs above α |",
+             "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for d in sorted(rates, key=lambda d: (np.median(rates[d]), d)):
+        r = rates[d]
+        lines.append(
+            f"| {d} | {len(r)} | {np.median(r):.3f} | {min(r):.3f}–{max(r):.3f} | "
+            f"{alarmed[d] / streams[d]:.3f} ({alarmed[d]}/{streams[d]}) | {above[d]} |"
+        )
+    return [*lines, "", "A run is above α when its rate's Clopper-Pearson 95% interval is.", ""]
+
+
+def versus(board: dict, metric: str, tier: str, rival: str, detectors: list[str], n_boot: int):
+    groups = defaultdict(list)
+    for cell in board["cells"]:
+        scores = cell["scores"].get(metric, {})
+        if cell["tier"] == tier and rival in scores:
+            groups[(cell["environment"], cell["family"])].append(scores)
+    rng = np.random.default_rng(0)
+    lines = [f"### Where each detector beats `{rival}` at `{tier}` (mean {metric} difference "
+             "over a group's cells [95% bootstrap CI], groups by environment and fault family)",
+             ""]  # fmt: skip
+    for d in detectors:
+        wins, n_groups, small = [], 0, 0
+        for (env, family), cells in sorted(groups.items()):
+            diffs = np.array([c[d] - c[rival] for c in cells if d in c])
+            if diffs.size == 0:
+                continue
+            n_groups += 1
+            if diffs.size < MIN_CELLS:
+                small += 1
+                continue
+            boot = diffs[rng.integers(0, diffs.size, (n_boot, diffs.size))].mean(axis=1)
+            low, high = np.quantile(boot, [0.025, 0.975])
+            if low > 0:
+                wins.append(f"{env}/{family} {diffs.mean():+.3f} [{low:+.3f}, {high:+.3f}] "
+                            f"({diffs.size} cells)")  # fmt: skip
+        where = "; ".join(wins) if wins else "nowhere"
+        unjudged = f", {small} of fewer than {MIN_CELLS} cells not judged" if small else ""
+        lines.append(f"- **{d}** (in {n_groups} groups{unjudged}): {where}")
+    return [*lines, ""]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--suite", type=Path, default=Path("pipeline/suite/reports"))
+    parser.add_argument("--pipelines", type=Path, default=Path("pipeline"))
+    parser.add_argument("--metric", default="detection_rate@100")
+    parser.add_argument("--tiers", nargs="+", default=[BENIGN, "mild", "moderate"])
+    parser.add_argument("--detectors", nargs="+", default=list(SECTION_20))
+    parser.add_argument("--versus", default="cusum")
+    parser.add_argument("--at", default="mild")
+    parser.add_argument("--n-boot", type=int, default=2000)
+    args = parser.parse_args(argv)
+    path = args.suite / "leaderboard.json"
+    if not path.is_file():
+        print(f"error: {path} not found; build the suite (oodrl suite run) or pass --suite.",
+              file=sys.stderr)  # fmt: skip
+        return 1
+    board = json.loads(path.read_text())
+    if args.metric not in board["iqm"]:
+        print(f"error: --metric {args.metric}: the leaderboard has {', '.join(board['iqm'])}.",
+              file=sys.stderr)  # fmt: skip
+        return 2
+    out = [f"# The suite's leaderboard (protocol version {board['protocol_version']}, "
+           f"{len(board['runs'])} runs, {args.metric})", ""]  # fmt: skip
+    out += top_five(board, args.metric, args.tiers)
+    out += landing(board, args.metric, args.tiers, args.detectors)
+    out += false_alarms(args.pipelines)
+    out += versus(board, args.metric, args.at, args.versus, args.detectors, args.n_boot)
+    print("\n".join(out))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
