@@ -4,6 +4,7 @@ the leaderboard, real git and DVC), only its own stages and the results stages a
 
 from __future__ import annotations
 
+import difflib
 import json
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from suite_repo import SUITE, head_commit, two_environment_suite
 from typer.testing import CliRunner
 
 from oodrl.cli import app
+from oodrl.errors import ConfigError
 from oodrl.testing.pipeline import repro, run
 from oodrl.testing.suite import code_env
 
@@ -190,3 +192,30 @@ def test_an_environment_listing_its_own_detectors_gets_the_new_one_appended(repo
     }  # nothing else changed, nulls included
     inherits = repo_root / "pipeline" / "hopper_policy1" / "params.yaml"  # extends hopper's
     assert add_to_own_list(inherits.read_text(), "my_detector") is None
+
+
+def test_adding_a_detector_inserts_lines_and_changes_no_other(repo_root):
+    """The suite's params keep every line as it was (flow-style blocks over several lines and
+    their comments included): the new detector's list item and block are inserted lines."""
+    from oodrl.suite_try import add_to_params
+
+    before = (repo_root / "pipeline" / "params.yaml").read_text()
+    block = {"class": "pyod.models.hbos:HBOS", "features": "state", "n_bins": 10}
+    after = add_to_params(before, "hbos", block, inherited=[])
+    edits = difflib.SequenceMatcher(None, before.splitlines(), after.splitlines(), False)
+    changes = [op for op in edits.get_opcodes() if op[0] != "equal"]
+    assert [op[0] for op in changes] == ["insert", "insert"]  # no line removed or replaced
+    added = [line for *_, j1, j2 in changes for line in after.splitlines()[j1:j2]]
+    assert added == ["    - hbos", "  hbos:", '    class: "pyod.models.hbos:HBOS"',
+                     "    features: state", "    n_bins: 10"]  # fmt: skip
+    expected = yaml.safe_load(before)
+    expected["benchmark"]["detectors"].append("hbos")
+    expected["detectors"]["hbos"] = block
+    assert yaml.safe_load(after) == expected
+
+
+def test_a_flow_style_detector_list_is_refused_in_one_line():
+    from oodrl.suite_try import add_to_own_list
+
+    with pytest.raises(ConfigError, match="flow-style list"):
+        add_to_own_list("benchmark:\n  detectors: [a, b]\n", "x")

@@ -220,59 +220,94 @@ class Staged:
 
 
 def _round_trip():
-    """A YAML codec that keeps a params file's comments, order and quotes."""
+    """A YAML parser that keeps line numbers, and a codec for the new detector's block."""
     from ruamel.yaml import YAML
 
     yaml = YAML()
     yaml.indent(mapping=2, sequence=4, offset=2)
-    yaml.width = 4096
-    yaml.preserve_quotes = True
+    yaml.width = 100
     yaml.representer.add_representer(  # `null` stays `null`, not an empty value
         type(None), lambda r, _: r.represent_scalar("tag:yaml.org,2002:null", "null")
     )
     return yaml
 
 
+# The params files are edited by inserting lines where the parser says the list and the mapping
+# end, not by dumping the parsed document again: a round trip re-flows every flow-style block
+# (`{a: 1, …}` over several lines) onto one line and moves the comments beside it.
+
+
+def _insert(text: str, line: int, lines: list[str]) -> str:
+    rows = text.splitlines(keepends=True)
+    if rows and not rows[-1].endswith("\n"):
+        rows[-1] += "\n"
+    rows[line:line] = lines
+    return "".join(rows)
+
+
+def _end_of_block(text: str, document, key: str) -> int:
+    """The line after the top-level `key`'s block (its last line that is not blank or a
+    comment): the next top-level key's line, stepped back over blank and comment lines."""
+    rows = text.splitlines()
+    keys = list(document)
+    later = keys[keys.index(key) + 1 :]
+    end = document.lc.key(later[0])[0] if later else len(rows)
+    while end > 0 and (not rows[end - 1].strip() or rows[end - 1].lstrip().startswith("#")):
+        end -= 1
+    return end
+
+
+def _appended_item(text: str, listed, name: str) -> str:
+    """`text` with `- name` after the last item of the parsed block list `listed`."""
+    line, _ = listed.lc.item(len(listed) - 1)
+    last = text.splitlines()[line]
+    if listed.fa.flow_style() or "- " not in last:
+        raise ConfigError(
+            f"benchmark.detectors is a flow-style list ([a, b, …]); write it one `- name` per "
+            f"line for suite try to append '{name}' to it."
+        )
+    return _insert(text, line + 1, [last[: last.index("- ") + 2] + name + "\n"])
+
+
 def add_to_params(text: str, name: str, block: dict[str, Any], inherited: list[str]) -> str:
-    """The suite's params text with the detector added, comments and order kept."""
+    """The suite's params text with the detector added to `benchmark.detectors` (listed there
+    now when it was inherited) and to `detectors`; every other line kept as it was."""
     import io
 
-    from ruamel.yaml.comments import CommentedMap, CommentedSeq
+    from ruamel.yaml.comments import CommentedMap
     from ruamel.yaml.scalarstring import DoubleQuotedScalarString
 
     yaml = _round_trip()
-    document = yaml.load(text)
-    benchmark = document.setdefault("benchmark", CommentedMap())
-    if "detectors" not in benchmark:  # inherited from the root's params: listed here now
-        benchmark["detectors"] = CommentedSeq(inherited)
-    benchmark["detectors"].append(name)
-    detectors = document.setdefault("detectors", CommentedMap())
+    document = yaml.load(text) or CommentedMap()
     entry = CommentedMap(block)
     entry["class"] = DoubleQuotedScalarString(block["class"])
-    detectors[name] = entry
     buffer = io.StringIO()
-    yaml.dump(document, buffer)
-    return buffer.getvalue()
+    yaml.dump(CommentedMap({name: entry}), buffer)
+    lines = ["  " + row for row in buffer.getvalue().splitlines(keepends=True)]
+    # The later insertion first, so that the earlier one's line numbers stay right.
+    if "detectors" in document:
+        text = _insert(text, _end_of_block(text, document, "detectors"), lines)
+    else:
+        text = _insert(text, len(text.splitlines()), ["detectors:\n", *lines])
+    benchmark = document.get("benchmark")
+    if benchmark is not None and benchmark.get("detectors"):
+        return _appended_item(text, benchmark["detectors"], name)
+    listed = ["  detectors:\n", *(f"    - {d}\n" for d in [*inherited, name])]
+    if benchmark is None:
+        return _insert(text, len(text.splitlines()), ["benchmark:\n", *listed])
+    return _insert(text, document.lc.key("benchmark")[0] + 1, listed)
 
 
 def add_to_own_list(text: str, name: str) -> str | None:
     """An environment's params text with the detector appended to the `benchmark.detectors`
     list it sets itself (the environments that leave some suite detectors out, e.g. the
     policy-view ones where the policy has no value head); None when it sets none."""
-    import io
-
     yaml = _round_trip()
     document = yaml.load(text)
     listed = (document.get("benchmark") or {}).get("detectors") if document else None
-    if listed is None:
+    if not listed:
         return None
-    listed.append(name)
-    last = len(listed) - 2  # the blank line or comment after the list stays after it
-    if last in listed.ca.items:
-        listed.ca.items[last + 1] = listed.ca.items.pop(last)
-    buffer = io.StringIO()
-    yaml.dump(document, buffer)
-    return buffer.getvalue()
+    return _appended_item(text, listed, name)
 
 
 #: Run in the scratch clone with its own code (the code the tasks run): every run's params
