@@ -92,7 +92,14 @@ def false_alarms(pipelines: Path) -> list[str]:
     rates, above, alarmed, streams, alpha = defaultdict(list), defaultdict(int), {}, {}, set()
     runs = sorted(pipelines.glob("*/reports/tier_results.yaml"))
     for path in runs:
-        document = yaml.safe_load(path.read_text())
+        try:
+            document = yaml.safe_load(path.read_text())
+            document["alpha"]  # noqa: B018 - read below
+        except (yaml.YAMLError, KeyError, TypeError) as error:
+            first = str(error).splitlines()[0] if str(error) else ""
+            raise SystemExit(
+                f"error: {path} is not a tier results file ({type(error).__name__}: {first})."
+            ) from None
         alpha.add(document["alpha"])
         for d, audit in (document.get("false_alarm_audit") or {}).items():
             rates[d].append(audit["rate"])
@@ -159,7 +166,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {path} not found; build the suite (oodrl suite run) or pass --suite.",
               file=sys.stderr)  # fmt: skip
         return 1
-    board = json.loads(path.read_text())
+    try:
+        board = json.loads(path.read_text())
+        board["iqm"], board["cells"], board["runs"]  # noqa: B018 - the keys read below
+    except (ValueError, KeyError, TypeError) as error:
+        first = str(error).splitlines()[0] if str(error) else ""
+        print(f"error: {path} is not a leaderboard.json ({type(error).__name__}: {first}); the "
+              "suite's leaderboard stage writes it.", file=sys.stderr)  # fmt: skip
+        return 1
     if args.metric not in board["iqm"]:
         print(f"error: --metric {args.metric}: the leaderboard has {', '.join(board['iqm'])}.",
               file=sys.stderr)  # fmt: skip
