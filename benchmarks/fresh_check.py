@@ -271,7 +271,7 @@ def tier_verdict(low: float, high: float, value: float, level: float, band, n: i
     lo, hi = band if band is not None else (level - TOLERANCE, level + TOLERANCE)
     step = " (step)" if band is not None else ""
     if lo - 1e-12 <= low and high <= hi + 1e-12:
-        return f"within {TOLERANCE}{step}" if band is None else "within its band (step)"
+        return "within its band (step)" if band is not None else f"within {TOLERANCE}"
     if high < lo or low > hi:
         return f"misses by {value - level:+.3f}{step}"
     return f"undecided at {n} episodes{step}"

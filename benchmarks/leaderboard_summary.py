@@ -46,6 +46,20 @@ BENIGN = "benign"
 MIN_CELLS = 5
 
 
+def load(path: Path, parse, keys: tuple[str, ...], what: str) -> dict:
+    """The parsed file; exit 1 with one line when it does not parse or lacks one of `keys`."""
+    try:
+        document = parse(path.read_text())
+        missing = [key for key in keys if key not in document]
+    except (ValueError, TypeError, yaml.YAMLError) as error:
+        reason = f"{type(error).__name__}: {(str(error).splitlines() or [''])[0]}"
+    else:
+        if not missing:
+            return document
+        reason = f"no {', '.join(missing)}"
+    raise SystemExit(f"error: {path} is not {what} ({reason}).")
+
+
 def interval(d: dict) -> str:
     return f"{d['value']:.3f} [{d['ci_low']:.3f}, {d['ci_high']:.3f}]"
 
@@ -92,14 +106,7 @@ def false_alarms(pipelines: Path) -> list[str]:
     rates, above, alarmed, streams, alpha = defaultdict(list), defaultdict(int), {}, {}, set()
     runs = sorted(pipelines.glob("*/reports/tier_results.yaml"))
     for path in runs:
-        try:
-            document = yaml.safe_load(path.read_text())
-            document["alpha"]  # noqa: B018 - read below
-        except (yaml.YAMLError, KeyError, TypeError) as error:
-            first = str(error).splitlines()[0] if str(error) else ""
-            raise SystemExit(
-                f"error: {path} is not a tier results file ({type(error).__name__}: {first})."
-            ) from None
+        document = load(path, yaml.safe_load, ("alpha",), "a tier results file")
         alpha.add(document["alpha"])
         for d, audit in (document.get("false_alarm_audit") or {}).items():
             rates[d].append(audit["rate"])
@@ -166,14 +173,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {path} not found; build the suite (oodrl suite run) or pass --suite.",
               file=sys.stderr)  # fmt: skip
         return 1
-    try:
-        board = json.loads(path.read_text())
-        board["iqm"], board["cells"], board["runs"]  # noqa: B018 - the keys read below
-    except (ValueError, KeyError, TypeError) as error:
-        first = str(error).splitlines()[0] if str(error) else ""
-        print(f"error: {path} is not a leaderboard.json ({type(error).__name__}: {first}); the "
-              "suite's leaderboard stage writes it.", file=sys.stderr)  # fmt: skip
-        return 1
+    board = load(path, json.loads, ("iqm", "cells", "runs"), "the leaderboard stage's JSON")
     if args.metric not in board["iqm"]:
         print(f"error: --metric {args.metric}: the leaderboard has {', '.join(board['iqm'])}.",
               file=sys.stderr)  # fmt: skip

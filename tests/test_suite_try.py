@@ -217,5 +217,5 @@ def test_adding_a_detector_inserts_lines_and_changes_no_other(repo_root):
 def test_a_flow_style_detector_list_is_refused_in_one_line():
     from oodrl.suite_try import add_to_own_list
 
-    with pytest.raises(ConfigError, match="flow-style list"):
+    with pytest.raises(ConfigError, match="empty or a flow-style list"):
         add_to_own_list("benchmark:\n  detectors: [a, b]\n", "x")

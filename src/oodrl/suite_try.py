@@ -237,11 +237,13 @@ def _round_trip():
 # (`{a: 1, …}` over several lines) onto one line and moves the comments beside it.
 
 
-def _insert(text: str, line: int, lines: list[str]) -> str:
+def _inserted(text: str, insertions: list[tuple[int, list[str]]]) -> str:
+    """`text` with each (line, lines) inserted before that line of the original text."""
     rows = text.splitlines(keepends=True)
     if rows and not rows[-1].endswith("\n"):
         rows[-1] += "\n"
-    rows[line:line] = lines
+    for line, lines in sorted(insertions, key=lambda insertion: -insertion[0]):
+        rows[line:line] = lines  # bottom up: an earlier line keeps its number
     return "".join(rows)
 
 
@@ -257,16 +259,16 @@ def _end_of_block(text: str, document, key: str) -> int:
     return end
 
 
-def _appended_item(text: str, listed, name: str) -> str:
-    """`text` with `- name` after the last item of the parsed block list `listed`."""
+def _item_after(text: str, listed, name: str) -> tuple[int, list[str]]:
+    """The insertion of `- name` after the last item of the parsed block list `listed`."""
+    if not listed or listed.fa.flow_style():
+        raise ConfigError(
+            f"benchmark.detectors is empty or a flow-style list ([a, b, …]); write it one "
+            f"`- name` per line for suite try to append '{name}' to it."
+        )
     line, _ = listed.lc.item(len(listed) - 1)
     last = text.splitlines()[line]
-    if listed.fa.flow_style() or "- " not in last:
-        raise ConfigError(
-            f"benchmark.detectors is a flow-style list ([a, b, …]); write it one `- name` per "
-            f"line for suite try to append '{name}' to it."
-        )
-    return _insert(text, line + 1, [last[: last.index("- ") + 2] + name + "\n"])
+    return line + 1, [last[: last.index("- ") + 2] + name + "\n"]
 
 
 def add_to_params(text: str, name: str, block: dict[str, Any], inherited: list[str]) -> str:
@@ -284,18 +286,20 @@ def add_to_params(text: str, name: str, block: dict[str, Any], inherited: list[s
     buffer = io.StringIO()
     yaml.dump(CommentedMap({name: entry}), buffer)
     lines = ["  " + row for row in buffer.getvalue().splitlines(keepends=True)]
-    # The later insertion first, so that the earlier one's line numbers stay right.
+    end = len(text.splitlines())
     if "detectors" in document:
-        text = _insert(text, _end_of_block(text, document, "detectors"), lines)
+        insertions = [(_end_of_block(text, document, "detectors"), lines)]
     else:
-        text = _insert(text, len(text.splitlines()), ["detectors:\n", *lines])
+        insertions = [(end, ["detectors:\n", *lines])]
     benchmark = document.get("benchmark")
-    if benchmark is not None and benchmark.get("detectors"):
-        return _appended_item(text, benchmark["detectors"], name)
     listed = ["  detectors:\n", *(f"    - {d}\n" for d in [*inherited, name])]
     if benchmark is None:
-        return _insert(text, len(text.splitlines()), ["benchmark:\n", *listed])
-    return _insert(text, document.lc.key("benchmark")[0] + 1, listed)
+        insertions.append((end, ["benchmark:\n", *listed]))
+    elif "detectors" in benchmark:
+        insertions.append(_item_after(text, benchmark["detectors"], name))
+    else:  # inherited from the root's params: listed here now
+        insertions.append((document.lc.key("benchmark")[0] + 1, listed))
+    return _inserted(text, insertions)
 
 
 def add_to_own_list(text: str, name: str) -> str | None:
@@ -305,9 +309,9 @@ def add_to_own_list(text: str, name: str) -> str | None:
     yaml = _round_trip()
     document = yaml.load(text)
     listed = (document.get("benchmark") or {}).get("detectors") if document else None
-    if not listed:
+    if listed is None:
         return None
-    return _appended_item(text, listed, name)
+    return _inserted(text, [_item_after(text, listed, name)])
 
 
 #: Run in the scratch clone with its own code (the code the tasks run): every run's params
