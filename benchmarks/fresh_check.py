@@ -257,12 +257,11 @@ def committed_tiers(faults: list[str]) -> tuple[dict[str, dict], int | None]:
 def tier_band(name: str, levels: dict[str, float], stepped: bool) -> tuple[float, float] | None:
     """The band a stepped fault's tier must fall in (see the module docstring); None for a
     continuous fault, whose band is its level ± TOLERANCE."""
-    from oodrl.impact import SEVERE_FLOOR
+    from oodrl.impact import _tier_floor  # the band the impact stage verifies a step against
 
     if not stepped:
         return None
-    floor = max((v for v in levels.values() if v < levels[name]), default=SEVERE_FLOOR)
-    return floor - TOLERANCE, levels[name] + TOLERANCE
+    return _tier_floor(name, levels) - TOLERANCE, levels[name] + TOLERANCE
 
 
 def tier_verdict(low: float, high: float, value: float, level: float, band, n: int) -> str:
