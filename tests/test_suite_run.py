@@ -17,6 +17,7 @@ from typer.testing import CliRunner
 
 from oodrl.cli import app
 from oodrl.suite_run import _unchanged_since_found_current, _up_to_date, run_suite
+from oodrl.testing.pipeline import run
 
 pytestmark = pytest.mark.slow
 
@@ -81,6 +82,18 @@ def test_local_workers_leave_the_locks_of_a_serial_run(fresh_suite, serial_locks
     results.write_bytes(kept)
     run_suite(fresh_suite, workers=2, echo=lines.append)
     assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"
+
+    # One pipeline's knob, committed: only its task runs; the current root is not cloned again.
+    params = fresh_suite / "pipeline" / "cartpole" / "params.yaml"
+    params.write_text(params.read_text() + "metrics:\n  n_boot: 21\n")
+    run(fresh_suite, "git", "commit", "-q", "-am", "a CartPole knob")
+    lines.clear()
+    third = run_suite(fresh_suite, workers=2, echo=lines.append)
+    assert [run.pipeline for run in third.pipelines] == ["pipeline/cartpole"]
+    assert "suite: 1 of 2 pipelines are up to date; building the other 1" in lines
+    assert [line for line in lines if line.startswith("started")] == ["started  pipeline/cartpole"]
+    assert third.head_ran == (f"{SUITE}:leaderboard",)
+    assert _up_to_date(fresh_suite / "pipeline" / "cartpole")
 
 
 def test_an_uncommitted_input_is_refused_before_anything_runs(fresh_suite):

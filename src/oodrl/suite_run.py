@@ -411,6 +411,12 @@ def _build_suite(
         echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
         return SuiteRun((), (), time.perf_counter() - start)
     _refuse_uncommitted_inputs(root, projects)
+    # A current pipeline's task would clone it only to restore every stage from the cache: the
+    # head's checkout already is what that task would write.
+    stale = [pipeline for pipeline, ok in zip(pipelines, current, strict=False) if not ok]
+    if len(stale) < len(pipelines):
+        echo(f"suite: {len(pipelines) - len(stale)} of {len(pipelines)} pipelines are up to "
+             f"date; building the other {len(stale)}")  # fmt: skip
     job = {
         "bundle": _bundle(root),
         "commit": _run(root, {}, "git", "rev-parse", "HEAD").stdout.strip(),
@@ -418,9 +424,9 @@ def _build_suite(
         "shared_cache": None if ray_address else _cache_dir(root),
     }
     if ray_address is None:
-        building = _local_tasks(root, pipelines, job, workers, echo)
+        building = _local_tasks(root, stale, job, workers, echo)
     else:
-        building = _ray_tasks(root, pipelines, job, ray_address, echo)
+        building = _ray_tasks(root, stale, job, ray_address, echo)
     runs: list[PipelineRun] = []
     last_task_ended = start
     # closing: an interruption or a failure while the head restores stops the tasks now.
