@@ -1,8 +1,12 @@
-"""Shared fixtures: the repository root, the default params as a dict, small clean sets."""
+"""Shared fixtures: the repository root, the default params as a dict, small clean sets, a
+read-only HTTP server."""
 
 from __future__ import annotations
 
 import copy
+import functools
+import http.server
+import threading
 from pathlib import Path
 
 import pytest
@@ -36,3 +40,25 @@ def heuristic_clean():
     from oodrl.envs.lunar_lander import LunarLanderAdapter
 
     return collect(LunarLanderAdapter(), HeuristicPolicy(), range(100, 108), 300)
+
+
+@pytest.fixture
+def serve():
+    """Serve a directory read-only over HTTP on a free loopback port, from a thread: its URL."""
+    servers = []
+
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args) -> None:
+            pass
+
+    def start(directory: Path) -> str:
+        handler = functools.partial(Quiet, directory=str(directory))
+        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        threading.Thread(target=server.serve_forever, daemon=True).start()
+        servers.append(server)
+        return f"http://127.0.0.1:{server.server_address[1]}/"
+
+    yield start
+    for server in servers:
+        server.shutdown()
+        server.server_close()

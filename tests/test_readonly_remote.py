@@ -12,13 +12,10 @@ gets wrong on a fresh clone (the last test)."""
 from __future__ import annotations
 
 import errno
-import functools
 import hashlib
-import http.server
 import os
 import shutil
 import socket
-import threading
 from pathlib import Path
 
 import pytest
@@ -91,28 +88,6 @@ def published(tmp_path_factory) -> tuple[Path, Path]:
     git(repo, "commit", "-q", "-m", "built")
     assert not set(OUTPUTS) & set(git(repo, "ls-files").split())  # DVC's .gitignore came too
     return repo, remote
-
-
-@pytest.fixture
-def serve():
-    """Serve a directory read-only over HTTP on a free loopback port, from a thread: its URL."""
-    servers = []
-
-    class Quiet(http.server.SimpleHTTPRequestHandler):
-        def log_message(self, *args) -> None:
-            pass
-
-    def start(directory: Path) -> str:
-        handler = functools.partial(Quiet, directory=str(directory))
-        server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-        threading.Thread(target=server.serve_forever, daemon=True).start()
-        servers.append(server)
-        return f"http://127.0.0.1:{server.server_address[1]}/"
-
-    yield start
-    for server in servers:
-        server.shutdown()
-        server.server_close()
 
 
 def clone_with_remote(lab: Path, clone: Path, url: str) -> Path:
@@ -247,11 +222,12 @@ def test_ray_with_a_read_only_remote_is_refused(published, serve, tmp_path, monk
 def test_dvc_repro_allow_missing_runs_a_stage_on_a_directory_it_never_pulled(
     published, serve, tmp_path
 ):
-    """Why `oodrl suite run` pulls first, then runs `dvc repro --pull`: DVC's own `dvc repro
-    --pull --allow-missing`, with nothing changed, skips the impact stages (outputs missing, but
-    allowed) without pulling them, then finds `tiers`'s dep data/impact modified, not missing
-    (git made it, for the .gitignore DVC committed there), and runs it on an empty directory.
-    Should a DVC release pass this test no more, the pull first is no longer needed."""
+    """Why oodrl's projects ignore whole a directory that several stages fill (FILLED_DIRS), and
+    why `oodrl suite run` pulls first: here DVC committed a .gitignore inside data/impact, and
+    DVC's own `dvc repro --pull --allow-missing`, with nothing changed, skips the impact stages
+    (outputs missing, but allowed) without pulling them, then finds `tiers`'s dep data/impact
+    modified, not missing (git made it, for that .gitignore), and runs it on an empty
+    directory. After a `dvc pull`, `dvc repro --pull` runs nothing."""
     lab, remote = published
     clone = clone_with_remote(lab, tmp_path / "clone", serve(remote))
     assert sorted(os.listdir(clone / "data" / "impact")) == [".gitignore"]

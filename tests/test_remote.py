@@ -71,6 +71,25 @@ def configure(project: Path, remote: dict[str, str]) -> None:
             run(project, "dvc", "remote", "modify", "--local", "lab", option, value)
 
 
+def test_dvc_repro_allow_missing_on_a_fresh_clone_with_a_read_only_remote_runs_nothing(
+    built, serve, tmp_path
+):
+    """DVC's own way to fetch what is unchanged and run what changed, on a fresh clone whose
+    only remote is read-only HTTP: nothing changed, so no stage runs and no file changes. It
+    can, because git ignores the directories several stages fill whole (FILLED_DIRS): a
+    clone has none of them, and a stage reading one finds its dep missing, not modified."""
+    repo, _ = built
+    shared = tmp_path / "shared"
+    configure(repo / PROJECT, {"url": str(shared)})
+    run(repo / PROJECT, "dvc", "push", "-q")
+    clone = tmp_path / "clone"
+    run(tmp_path, "git", "clone", "-q", str(repo), str(clone))
+    assert not (clone / PROJECT / "scores").exists()
+    configure(clone / PROJECT, {"url": serve(shared)})
+    assert repro(clone / PROJECT, "--pull", "--allow-missing", env=code_env(clone)) == []
+    assert run(clone, "git", "status", "--porcelain").stdout == ""
+
+
 def test_a_fresh_clone_pulls_and_a_second_machine_restores(built, remote, tmp_path):
     repo, built_ran = built
     configure(repo / PROJECT, remote)

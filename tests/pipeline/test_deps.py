@@ -18,8 +18,12 @@ from oodrl.cli import app
 from oodrl.errors import ConfigError
 from oodrl.layout import detector_pipeline
 from oodrl.pipeline import (
+    DETECTOR_TEMPLATE,
+    FILLED_DIRS,
+    FILLED_DIRS_IGNORED,
     MERGED_PARAMS,
     SUBREPO_FILES,
+    TEMPLATE,
     Project,
     check,
     check_pipeline,
@@ -373,3 +377,20 @@ def test_the_suite_pipeline_reads_every_runs_results(repo_root):
     assert {"reports/leaderboard.json": {"cache": False}} in outs
     root_stages = yaml.safe_load((repo_root / "dvc.yaml").read_text())["stages"]
     assert "leaderboard" not in root_stages  # the root `dvc repro` stays the paper default
+
+
+def test_every_directory_that_stages_fill_is_ignored_whole(repo_root):
+    """A dep on a directory that other stages' outputs fill is one of FILLED_DIRS, which every
+    project's .gitignore ignores whole, the root's too (SPEC §21): a fresh clone has none of
+    them, so `dvc repro --pull --allow-missing` finds such a dep missing, not modified."""
+    bodies = [
+        stage.get("do", stage)
+        for template in (TEMPLATE, DETECTOR_TEMPLATE)
+        for stage in yaml.safe_load(template.read_text())["stages"].values()
+    ]
+    outs = {o if isinstance(o, str) else next(iter(o)) for b in bodies for o in b.get("outs", [])}
+    deps = {dep for body in bodies for dep in body.get("deps", [])}
+    filled = {d for d in deps - outs if any(out.startswith(f"{d}/") for out in outs)}
+    assert filled == set(FILLED_DIRS)
+    assert FILLED_DIRS_IGNORED in (repo_root / ".gitignore").read_text()
+    assert FILLED_DIRS_IGNORED in SUBREPO_FILES[".gitignore"]
