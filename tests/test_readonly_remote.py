@@ -123,13 +123,15 @@ def test_a_fresh_clone_restores_the_suite_and_builds_only_a_changed_knob(
     }
     assert _listing(remote) == served
 
-    # A knob edit, committed: its stage alone runs (its output is unchanged: not the leaderboard)
+    # A knob edit, committed: its stage alone runs (its output is unchanged: not the leaderboard);
+    # the root, current, is not cloned again.
     (clone / "pipeline" / "a" / "params.yaml").write_text("knob: 2\n")
     git(clone, "commit", "-q", "-am", "knob: 2")
     lines = []
     run = run_suite(clone, workers=2, echo=lines.append)
     assert lines[1].startswith("suite: remote 'pub'") and "pushing nothing" in lines[1]
-    assert ran(run) == {".": (), "pipeline/a": ("build",)}
+    assert "suite: 1 of 2 pipelines are up to date; building the other 1" in lines
+    assert ran(run) == {"pipeline/a": ("build",)}
     assert run.head_ran == ()
     assert git(clone, "status", "--porcelain") == " M pipeline/a/dvc.lock\n"
     assert _listing(remote) == served
