@@ -695,7 +695,10 @@ def _read_merged_params(stages: dict[str, Any], params: dict[str, Any]) -> None:
         body = stage["do"] if "foreach" in stage else stage
         if name == "check_params":
             body["cmd"] += f" --merged {MERGED_PARAMS}"
-            body["outs"].insert(1, {MERGED_PARAMS: {"persist": True}})
+            # Tracked by git, as params.yaml is: a fresh clone's `dvc repro --pull
+            # --allow-missing` reads every stage's params from it (DVC counts a params file
+            # that is missing as changed, the first stage reading it would run).
+            body["outs"].insert(1, {MERGED_PARAMS: {"persist": True, "cache": False}})
         elif "params" in body:
             body["params"] = [{MERGED_PARAMS: list(body["params"])}]
 
