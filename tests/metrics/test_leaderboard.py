@@ -9,6 +9,7 @@ from oodrl.metrics.leaderboard import (
     Cell,
     aggregate,
     build_board,
+    detector_scopes,
     fault_family,
     interquartile_mean,
     metric_order,
@@ -119,6 +120,34 @@ def test_cells_must_hold_the_same_detectors():
     cells[Cell("E1", "0", "a", "headline")] = {"A": [0.5]}
     with pytest.raises(ValueError, match="has detectors"):
         aggregate(cells)
+
+
+def test_a_detector_that_runs_on_some_cells_is_ranked_only_where_it_runs():
+    """C runs on E1's cells only, D on E1/a and E1/b only: the lead board ranks A and B on
+    every cell; each larger detector set is ranked over the cells that have all of it."""
+    cells = hand_cells()
+    for cell, values in cells.items():
+        if cell.environment == "E1":
+            values["C"] = [0.9, 0.9, 0.9]
+        if cell.environment == "E1" and cell.fault in ("a", "b"):
+            values["D"] = [0.2, 0.3, 0.4]
+    every, with_d, with_c = detector_scopes(cells)
+    assert set(every) == set(cells) and {tuple(v) for v in every.values()} == {("A", "B")}
+    assert {(c.environment, c.fault) for c in with_d} == {("E1", "a"), ("E1", "b")}
+    assert {tuple(v) for v in with_d.values()} == {("A", "B", "C", "D")}
+    assert {c.environment for c in with_c} == {"E1"} and len(with_c) == 4
+    assert {tuple(v) for v in with_c.values()} == {("A", "B", "C")}
+    board = build_board({"matched_auroc": cells}, n_boot=200)
+    key = ("matched_auroc", "headline")
+    assert board.overall[key] == aggregate(every, n_boot=200)
+    assert board.scoped[key] == (aggregate(with_d, n_boot=200), aggregate(with_c, n_boot=200))
+    scope = board.scoped[key][1]
+    # On E1, A's and B's cell means are all 0.5 and C's 0.9: ranked over the same four cells.
+    assert scope.ranked() == ["C", "A", "B"] and scope.iqm["C"].value == pytest.approx(0.9)
+    assert build_board({"matched_auroc": hand_cells()}, n_boot=200).scoped == {}
+    with pytest.raises(ValueError, match="no detector has values on every cell"):
+        detector_scopes({Cell("E1", "0", "a", "mild"): {"A": [1.0]},
+                         Cell("E1", "0", "b", "mild"): {"B": [1.0]}})  # fmt: skip
 
 
 def test_ranking_stability_across_policies():

@@ -180,9 +180,43 @@ def test_missing_old_or_partial_results_are_one_line_errors(results, tmp_path: P
     )
     with pytest.raises(StoreError, match="lacks per-episode detection_rate@100"):
         read_inputs(results | {"Hopper-v5": partial})
-    fewer = write_results(tmp_path / "e" / "results.yaml", 4, {"cusum": 0.9, "pedm": 0.7})
-    with pytest.raises(StoreError, match="no records of kde_density on"):
-        read_inputs(results | {"Hopper-v5": fewer})
+    # A run may run fewer detectors than another (its params'), never fewer in one of its cells.
+    gap = write_results(tmp_path / "e" / "results.yaml", 4, {d: 0.7 for d in DETECTORS})
+    document = yamlio.load(gap.read_text())
+    document["records"] = [
+        r for r in document["records"]
+        if (r["detector"], r.get("injector")) != ("kde_density", "gradual_drift")
+    ]  # fmt: skip
+    gap.write_text(yamlio.dump(document))
+    with pytest.raises(StoreError, match="no records of kde_density on .*'gradual_drift'"):
+        read_inputs(results | {"Hopper-v5": gap})
+
+
+def test_a_detector_that_runs_on_some_runs_is_ranked_where_it_runs(results, tmp_path: Path):
+    """Hopper's run has no kde_density (as a continuous-action run has no policy-view detector):
+    the lead board ranks the detectors every cell has; kde_density is ranked beside them over the
+    cells of the runs that have it, in the tables, metrics.json and the page's data."""
+    fewer = write_results(tmp_path / "c" / "results.yaml", 2, {"cusum": 0.9, "pedm": 0.7})
+    board = run_leaderboard(
+        results | {"Hopper-v5": fewer}, tmp_path / "out", n_boot=200, ci=0.95, seed=0
+    )
+    key = ("matched_auroc", "headline")
+    assert board.overall[key].detectors == ("cusum", "pedm") and board.overall[key].n_cells == 9
+    (scope,) = board.scoped[key]
+    assert scope.detectors == DETECTORS and scope.environments == ("CartPole-v1", "Pendulum-v1")
+    assert scope.n_cells == 6
+    text = (tmp_path / "out" / "leaderboard.md").read_text()
+    assert "### Where more detectors run: CartPole-v1, Pendulum-v1 (6 cells)\n" in text
+    assert table_rows(text, "kde_density run only on these cells") == [
+        "cusum", "pedm", "kde_density"
+    ]  # fmt: skip
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert "matched_auroc.headline.iqm.kde_density" not in metrics
+    scoped = "matched_auroc.headline.CartPole-v1+Pendulum-v1.iqm.kde_density"
+    assert metrics[scoped] == round(scope.iqm["kde_density"].value, 6)
+    page = json.loads((tmp_path / "out" / "leaderboard.json").read_text())
+    (entry,) = page["iqm_where_more_detectors_run"]["matched_auroc"]["headline"]
+    assert entry["n_cells"] == 6 and set(entry["iqm"]) == set(DETECTORS)
 
 
 def test_the_stage_reads_headline_and_tier_results_of_every_environment(tmp_path: Path):

@@ -33,7 +33,7 @@ which one a table used. Task number c (in sorted order) draws from `default_rng(
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -431,6 +431,9 @@ class Board:
     flagged: dict[Task, dict[str, float]]
     #: (metric, tier) → the aggregate without the flagged tasks, where some but not all are.
     unflagged: dict[tuple[str, str], Aggregate]
+    #: (metric, tier) → the aggregates over the cells where more detectors run than on every
+    #: cell (`detector_scopes`); empty where every cell has the same detectors.
+    scoped: dict[tuple[str, str], tuple[Aggregate, ...]] = field(default_factory=dict)
 
     def order(self) -> list[tuple[str, str]]:
         """Every (metric, tier) aggregated: tiers mild first, within one `detection_rate@K`
@@ -443,6 +446,28 @@ class Board:
     def lead(self) -> tuple[str, str]:
         """The (metric, tier) the leaderboard leads with: the first of `order`."""
         return self.order()[0]
+
+
+def detector_scopes(cells: CellValues) -> list[dict[Cell, Mapping[str, Sequence[float]]]]:
+    """The cells with the detectors every one of them has; then, for each larger set S of
+    detectors some cells have, the cells that have all of S, with S (largest S first).
+
+    A detector that cannot run everywhere (SPEC §20: the policy view needs a discrete value
+    head) is ranked only where it runs, beside every detector that runs there: aggregates
+    compare detectors on the same tasks (rliable), so a detector is never averaged over other
+    cells than the detectors it is ranked against.
+    """
+    sets = {frozenset(values) for values in cells.values()}
+    common = frozenset.intersection(*sets)
+    if not common:
+        raise ValueError("no detector has values on every cell")
+    every = {Cell(*c): {d: v[d] for d in sorted(common)} for c, v in cells.items()}
+    larger = sorted(sets - {common}, key=lambda s: (-len(s), sorted(s)))
+    scopes = [
+        {Cell(*c): {d: v[d] for d in sorted(found)} for c, v in cells.items() if found <= set(v)}
+        for found in larger
+    ]
+    return [every, *scopes]
 
 
 def build_board(
@@ -466,7 +491,7 @@ def build_board(
         flagged = trivial_flags(cells_by_metric.get(MATCHED_AUROC, {}))
     flagged = {task: dict(v) for task, v in sorted(flagged.items())}
     options = {"n_boot": n_boot, "ci": ci, "seed": seed, "taus": taus}
-    overall, families, stability, unflagged = {}, {}, {}, {}
+    overall, families, stability, unflagged, scoped = {}, {}, {}, {}, {}
     for metric in metrics:
         for tier in tiers:
             cells = {
@@ -475,6 +500,9 @@ def build_board(
             if not cells:
                 continue
             key = (metric, tier)
+            cells, *scopes = detector_scopes(cells)
+            if scopes:
+                scoped[key] = tuple(aggregate(scope, **options) for scope in scopes)
             overall[key] = aggregate(cells, **options)
             stability[key] = ranking_stability(cells)
             by_family: dict[str, dict[Cell, Any]] = {}
@@ -490,4 +518,4 @@ def build_board(
             }
             if kept and len(kept) < len(cells):
                 unflagged[key] = aggregate(kept, **options)
-    return Board(metrics, tiers, overall, families, stability, flagged, unflagged)
+    return Board(metrics, tiers, overall, families, stability, flagged, unflagged, scoped)

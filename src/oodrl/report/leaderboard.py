@@ -156,11 +156,15 @@ def read_inputs(results: ResultsPaths) -> Inputs:
                         row = mdi.setdefault(criterion, {}).setdefault((env_id, policy, fault), {})
                         row[detector] = value
     in_tier: dict[str, set[str]] = {}
-    detectors_in_tier: dict[str, set[str]] = {}
+    # A run's detectors are its params' (benchmark.detectors), the same in every cell of a
+    # tier; runs may differ (a continuous-action run has no policy-view detectors, SPEC §20:
+    # the board ranks them where they run, `oodrl.metrics.leaderboard.detector_scopes`).
+    detectors_in_tier: dict[tuple[str, str, str], set[str]] = {}
     detectors_of: dict[Cell, tuple[Path, set[str]]] = {}
     for (cell, detector), (path, found) in metrics_of.items():
         in_tier.setdefault(cell.tier, set()).update(found)
-        detectors_in_tier.setdefault(cell.tier, set()).add(detector)
+        run_tier = (cell.environment, cell.policy, cell.tier)
+        detectors_in_tier.setdefault(run_tier, set()).add(detector)
         detectors_of.setdefault(cell, (path, set()))[1].add(detector)
     for (cell, detector), (path, found) in metrics_of.items():
         if found != in_tier[cell.tier]:
@@ -170,11 +174,12 @@ def read_inputs(results: ResultsPaths) -> Inputs:
                 f"{cell.tier} have; re-run its metrics stage."
             )
     for cell, (path, found) in detectors_of.items():
-        if found != detectors_in_tier[cell.tier]:
+        expected = detectors_in_tier[(cell.environment, cell.policy, cell.tier)]
+        if found != expected:
             raise StoreError(
-                f"{path}: no records of {', '.join(sorted(detectors_in_tier[cell.tier] - found))} "
-                f"on {tuple(cell)}, which other results of tier {cell.tier} have; every cell of "
-                f"a tier needs the same detectors (benchmark.detectors)."
+                f"{path}: no records of {', '.join(sorted(expected - found))} on {tuple(cell)}, "
+                f"which other cells of its run and tier {cell.tier} have; every cell of a run's "
+                f"tier needs the same detectors (benchmark.detectors)."
             )
     version = one_protocol_version(documents)
     alpha = next(iter(alphas)) if len(alphas) == 1 else None
@@ -238,26 +243,42 @@ def _floor_lines(overall: Aggregate, label: str) -> list[str]:
     ]
 
 
+def _order(board: Aggregate, harmless: bool) -> list[str]:
+    """Best first; on harmless shifts, where a detection is a false alarm, the quietest first."""
+    if harmless:
+        return sorted(board.detectors, key=lambda d: (board.iqm[d].value, d))
+    return board.ranked()
+
+
+def _score_row(board: Aggregate, detector: str, uncertified: Sequence[str]) -> list[str]:
+    """A detector's name (marked), its mean per environment, its IQM and mean with CIs."""
+    name = marked(detector, uncertified)
+    name += " (trivial signal)" if detector in TRIVIAL_DETECTORS else ""
+    name += " (floor)" if detector == FLOOR_DETECTOR else ""
+    table = board.table[detector]
+    return [
+        name,
+        *(f"{table[e]:.3f}" for e in board.environments),
+        _interval(board.iqm[detector]),
+        _interval(board.mean[detector]),
+    ]
+
+
 def _section(
     board: Board, metric: str, tier: str, alpha: float | None, uncertified: Sequence[str] = ()
 ) -> list[str]:
     overall = board.overall[(metric, tier)]
     unflagged = board.unflagged.get((metric, tier))
     label = metric_label(metric, alpha)
-    order = overall.ranked()
     harmless = tier == BENIGN_TIER and metric.startswith("detection_rate")
-    if harmless:  # a detection of a harmless shift is a false alarm: the quietest first
-        order = sorted(overall.detectors, key=lambda d: (overall.iqm[d].value, d))
+    order = _order(overall, harmless)
     envs = list(overall.environments)
     header = ["detector", *envs, "IQM [95% CI]", "mean [95% CI]"]
     if unflagged is not None:
         header.append(f"IQM without flagged cells ({unflagged.n_cells}) [95% CI]")
     rows = []
     for d in order:
-        name = marked(d, uncertified) + (" (trivial signal)" if d in TRIVIAL_DETECTORS else "")
-        name += " (floor)" if d == FLOOR_DETECTOR else ""
-        row = [name, *(f"{overall.table[d][e]:.3f}" for e in envs)]
-        row += [_interval(overall.iqm[d]), _interval(overall.mean[d])]
+        row = _score_row(overall, d, uncertified)
         if unflagged is not None:
             row.append(_interval(unflagged.iqm[d]))
         rows.append(row)
@@ -278,6 +299,22 @@ def _section(
         f"Cells a trivial signal detects: {flagged} of {overall.n_cells}.",
         "",
     ]  # fmt: skip
+    for scope in board.scoped.get((metric, tier), ()):
+        only = [d for d in scope.detectors if d not in overall.detectors]
+        lines += [
+            f"### Where more detectors run: {', '.join(scope.environments)} "
+            f"({_count(scope.n_cells, 'cell')})",
+            "",
+            f"{', '.join(only)} run only on these cells (a detector that cannot run on a run's "
+            f"policy is left out of its params, SPEC §20), so they are ranked here, over these "
+            f"cells, beside every detector that runs on them.",
+            "",
+            *_table(
+                ["detector", *scope.environments, "IQM [95% CI]", "mean [95% CI]"],
+                [_score_row(scope, d, uncertified) for d in _order(scope, harmless)],
+            ),
+            "",
+        ]
     if harmless:
         return lines
     lines += _floor_lines(overall, label)
@@ -531,6 +568,10 @@ def board_mapping(
         }
         if (metric, tier) in board.unflagged:
             entry["without_flagged_cells"] = _aggregate_mapping(board.unflagged[(metric, tier)])
+        if (metric, tier) in board.scoped:
+            entry["where_more_detectors_run"] = [
+                _aggregate_mapping(scope) for scope in board.scoped[(metric, tier)]
+            ]
         boards.setdefault(metric, {})[tier] = entry
     mdi = {
         criterion: [
@@ -565,13 +606,18 @@ def board_mapping(
 def metrics_json(board: Board) -> dict[str, float]:
     """Figures for `dvc metrics diff`: each detector's IQM and mean, keyed
     `<metric>.<tier>.<aggregate>.<detector>`, so that a diff names what each number is (the lead
-    (metric, tier) too; SPEC §21)."""
+    (metric, tier) too; SPEC §21); over the cells where more detectors run,
+    `<metric>.<tier>.<environment>+<environment>….<aggregate>.<detector>`."""
     flat: dict[str, float] = {}
     for key, overall in board.overall.items():
-        prefix = f"{key[0]}.{key[1]}."
-        for d in overall.detectors:
-            flat[f"{prefix}iqm.{d}"] = round(overall.iqm[d].value, 6)
-            flat[f"{prefix}mean.{d}"] = round(overall.mean[d].value, 6)
+        scopes = [("", overall)] + [
+            ("+".join(scope.environments) + ".", scope) for scope in board.scoped.get(key, ())
+        ]  # a detector ranked only where it runs: its key names those environments
+        for where, aggregate in scopes:
+            prefix = f"{key[0]}.{key[1]}.{where}"
+            for d in aggregate.detectors:
+                flat[f"{prefix}iqm.{d}"] = round(aggregate.iqm[d].value, 6)
+                flat[f"{prefix}mean.{d}"] = round(aggregate.mean[d].value, 6)
     return flat
 
 

@@ -143,6 +143,22 @@ def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int
             }
             for metric in board.metrics
         },
+        # Detectors that run on some cells only, ranked there (`detector_scopes`).
+        "iqm_where_more_detectors_run": {
+            metric: {
+                tier: [
+                    {
+                        "environments": list(scope.environments),
+                        "n_cells": scope.n_cells,
+                        "iqm": {d: scope.iqm[d].as_dict() for d in scope.detectors},
+                    }
+                    for scope in scopes
+                ]
+                for (m, tier), scopes in board.scoped.items()
+                if m == metric
+            }
+            for metric in board.metrics
+        },  # fmt: skip
         "trivial_detectors": [d for d in TRIVIAL_DETECTORS if d in detectors],
         "floor_detector": FLOOR_DETECTOR if FLOOR_DETECTOR in detectors else None,
         "uncertified_detectors": list(inputs.uncertified),
