@@ -11,7 +11,8 @@ and prints markdown:
 1. the top five per tier with the IQM of the metric and its 95% CI, as the leaderboard ranks
    them (`benign` quietest first: an alarm on a harmless shift is a cost);
 2. where each detector of --detectors (default: SPEC §20's) lands at each tier: rank among
-   all, IQM [95% CI];
+   all, IQM [95% CI] (a detector that runs on some runs only: among the detectors of its
+   cells, marked *);
 3. each detector's false-alarm rate achieved on its run's audit set (200 clean streams used for
    nothing else, SPEC §19): over the runs, the median rate, the range, and the runs whose
    Clopper-Pearson interval lies above α;
@@ -34,6 +35,8 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+
+from oodrl import yamlio  # libyaml's loader: a tier results file is megabytes
 
 #: SPEC §20's detectors: the policy view, value-function surprise, a recurrent predictor, an
 #: anytime-valid test and the two baselines.
@@ -91,22 +94,29 @@ def landing(board: dict, metric: str, tiers: list[str], detectors: list[str]) ->
     lines = ["### Where each detector lands (rank among all, IQM [95% CI])", "",
              "| detector | " + " | ".join(present) + " |",
              "|---|" + "---:|" * len(present)]  # fmt: skip
+    scoped = board.get("iqm_where_more_detectors_run", {}).get(metric, {})
     for d in detectors:
         row = []
         for tier in present:
-            iqm = board["iqm"][metric][tier]
+            # A detector of some runs only is ranked among the detectors of its cells (marked *).
+            boards = [(board["iqm"][metric][tier], "")]
+            boards += [(s["iqm"], f" * ({s['n_cells']} cells)") for s in scoped.get(tier, [])]
+            iqm, mark = next(((i, m) for i, m in boards if d in i), (None, ""))
+            if iqm is None:
+                row.append("—")
+                continue
             order = ranked(iqm, tier)
-            row.append(f"{order.index(d) + 1}/{len(order)}: {interval(iqm[d])}" if d in iqm
-                       else "—")  # fmt: skip
+            row.append(f"{order.index(d) + 1}/{len(order)}: {interval(iqm[d])}{mark}")
         lines.append(f"| {d} | " + " | ".join(row) + " |")
-    return [*lines, ""]
+    note = "* ranked over the cells where it runs, among the detectors that run there."
+    return [*lines, "", *([note, ""] if scoped else [])]
 
 
 def false_alarms(pipelines: Path) -> list[str]:
     rates, above, alarmed, streams, alpha = defaultdict(list), defaultdict(int), {}, {}, set()
     runs = sorted(pipelines.glob("*/reports/tier_results.yaml"))
     for path in runs:
-        document = load(path, yaml.safe_load, ("alpha",), "a tier results file")
+        document = load(path, yamlio.load, ("alpha",), "a tier results file")
         alpha.add(document["alpha"])
         for d, audit in (document.get("false_alarm_audit") or {}).items():
             rates[d].append(audit["rate"])

@@ -29,8 +29,11 @@ def test_summary_of_a_known_leaderboard(tmp_path: Path):
         (env, policy) for env in ("CartPole-v1", "Hopper-v5") for policy in "01234"
     ):
         run = tmp_path / "pipeline" / f"{env}_{policy}" / "reports"
+        # q_margin runs on CartPole's runs only (a policy-view detector needs discrete actions)
+        # and detects every stream there.
+        mine = strength | ({"q_margin": 1.2} if env == "CartPole-v1" else {})
         results[(env, policy)] = write_results(
-            run / "results.yaml", seed, strength, tiers=("mild",), detection=True,
+            run / "results.yaml", seed, mine, tiers=("mild",), detection=True,
             extra={"protocol_version": 3},
         )  # fmt: skip
         tier_results = {"alpha": 0.05, "false_alarm_audit": {
@@ -40,7 +43,8 @@ def test_summary_of_a_known_leaderboard(tmp_path: Path):
     run_leaderboard(results, tmp_path / "suite", n_boot=200, ci=0.95, seed=0)
     done = subprocess.run(
         [sys.executable, SCRIPT, "--suite", tmp_path / "suite", "--pipelines",
-         tmp_path / "pipeline", "--tiers", "mild", "--detectors", "kde_density", "random_scores"],
+         tmp_path / "pipeline", "--tiers", "mild", "--detectors", "kde_density", "random_scores",
+         "q_margin"],
         capture_output=True, text=True, check=True,
     )  # fmt: skip
     out = done.stdout
@@ -49,11 +53,15 @@ def test_summary_of_a_known_leaderboard(tmp_path: Path):
         "kde_density"
     ]
     assert "| kde_density | 1/3: " in out and "| random_scores | 3/3: " in out
+    # Ranked among the detectors of CartPole's 15 (policy, cell) scores, 3 tasks: marked.
+    assert "| q_margin | 1/4: 1.000 [1.000, 1.000] * (3 cells) |" in out
     # 20 of 200 in each run, two of them (policy 0's) above α by their interval.
     assert "| kde_density | 10 | 0.100 | 0.100–0.100 | 0.100 (200/2000) | 2 |" in out
     assert "| cusum | 10 | 0.020 | 0.020–0.020 | 0.020 (40/2000) | 0 |" in out
     beats = out.split("beats `cusum`")[1]
     kde = next(line for line in beats.splitlines() if line.startswith("- **kde_density**"))
     assert "CartPole-v1/observation" in kde and "Hopper-v5/dynamics" in kde
+    q_margin = next(line for line in beats.splitlines() if line.startswith("- **q_margin**"))
+    assert "CartPole-v1/observation" in q_margin and "Hopper-v5" not in q_margin
     random = next(line for line in beats.splitlines() if line.startswith("- **random_scores**"))
     assert random.endswith("nowhere")
