@@ -98,13 +98,14 @@ def landing(board: dict, metric: str, tiers: list[str], detectors: list[str]) ->
     for d in detectors:
         row = []
         for tier in present:
-            # A detector of some runs only is ranked among the detectors of its cells (marked *).
-            boards = [(board["iqm"][metric][tier], "")]
-            boards += [(s["iqm"], f" * ({s['n_cells']} cells)") for s in scoped.get(tier, [])]
-            iqm, mark = next(((i, m) for i, m in boards if d in i), (None, ""))
-            if iqm is None:
-                row.append("—")
-                continue
+            iqm, mark = board["iqm"][metric][tier], ""
+            if d not in iqm:  # a detector of some runs only: over the most cells it runs on
+                mine = [s for s in scoped.get(tier, []) if d in s["iqm"]]
+                if not mine:
+                    row.append("—")
+                    continue
+                scope = max(mine, key=lambda s: s["n_cells"])
+                iqm, mark = scope["iqm"], f" * ({scope['n_cells']} cells)"
             order = ranked(iqm, tier)
             row.append(f"{order.index(d) + 1}/{len(order)}: {interval(iqm[d])}{mark}")
         lines.append(f"| {d} | " + " | ".join(row) + " |")

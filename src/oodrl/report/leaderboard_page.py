@@ -158,7 +158,7 @@ def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int
                 if m == metric
             }
             for metric in board.metrics
-        },  # fmt: skip
+        },
         "trivial_detectors": [d for d in TRIVIAL_DETECTORS if d in detectors],
         "floor_detector": FLOOR_DETECTOR if FLOOR_DETECTOR in detectors else None,
         "uncertified_detectors": list(inputs.uncertified),
