@@ -1,13 +1,16 @@
-"""A built project's scoring stages, this checkout against a baseline commit, in one run.
+"""A built project's scoring or results stages, this checkout against a baseline commit, in one run.
 
     python benchmarks/score_stages.py --baseline REV [--project pipeline/pendulum]
                                       [--injector stuck_actuator] [--json OUT] [detectors...]
+    python benchmarks/score_stages.py --baseline REV --results [--project pipeline/cartpole]
 
 For each detector (default: every one the project fits), runs its `score@<injector>` stage
-command (headline set, sweep and tiers) as `dvc repro` would, once with this checkout's sources
-and once with REV's (a clone; the command imports REV's `src` first), alternately so that both
-see the same load, each writing to a temporary directory. Prints the seconds of each, the ratio
-and whether the two wrote the same bytes; the stores in the project are not touched.
+command (headline set, sweep and tiers) as `dvc repro` would; with `--results`, the `metrics` and
+`tier_metrics` stage commands instead (every detector's results from the built score stores).
+Each command runs once with this checkout's sources and once with REV's (a clone; the command
+imports REV's `src` first), alternately so that both see the same load, each writing to a
+temporary directory. Prints the seconds of each, the ratio and whether the two wrote the same
+bytes; the project's own outputs are not touched.
 """
 
 from __future__ import annotations
@@ -39,6 +42,20 @@ def timed(project: Path, command: list[str], env: dict) -> float:
     return time.perf_counter() - start
 
 
+def results_commands(out: Path) -> dict[str, list[str]]:
+    return {
+        "metrics": [
+            "oodrl", "metrics", "--scores", "scores", "--results", f"{out}/results.yaml",
+            "--sweep-results", f"{out}/sweep_results.yaml",
+            "--metrics-file", f"{out}/metrics.json", "--tables", f"{out}/tables.md",
+        ],
+        "tier_metrics": [
+            "oodrl", "tier-metrics", "--scores", "scores", "--impact", "data/impact",
+            "--results", f"{out}/tier_results.yaml", "--report", f"{out}/tiers",
+        ],
+    }  # fmt: skip
+
+
 def tree_hash(directory: Path) -> str:
     digest = hashlib.sha256()
     for path in sorted(p for p in directory.rglob("*") if p.is_file()):
@@ -51,11 +68,17 @@ def main() -> None:
     parser.add_argument("detectors", nargs="*")
     parser.add_argument("--project", type=Path, default=Path("pipeline/pendulum"))
     parser.add_argument("--injector", default="stuck_actuator")
+    parser.add_argument("--results", action="store_true", help="time the results stages")
     parser.add_argument("--baseline", metavar="REV", required=True)
     parser.add_argument("--json", type=Path)
     args = parser.parse_args()
     project = (ROOT / args.project).resolve()
-    names = args.detectors or sorted(p.stem for p in (project / "models/detectors").glob("*.pkl"))
+    if args.results:
+        names = list(results_commands(Path()))
+    else:
+        names = args.detectors or sorted(
+            p.stem for p in (project / "models/detectors").glob("*.pkl")
+        )
     rows, totals = {}, {"baseline": 0.0, "current": 0.0}
     with tempfile.TemporaryDirectory() as tmp:
         base = Path(tmp) / "baseline"
@@ -69,7 +92,12 @@ def main() -> None:
             row = {}
             for which, env in envs.items():
                 out = Path(tmp) / which / name
-                row[which] = timed(project, stage_command(name, args.injector, out), env)
+                command = (
+                    results_commands(out)[name]
+                    if args.results
+                    else stage_command(name, args.injector, out)
+                )
+                row[which] = timed(project, command, env)
                 row[f"{which}_sha256"] = tree_hash(out)
                 totals[which] += row[which]
             same = row["baseline_sha256"] == row["current_sha256"]
@@ -83,7 +111,8 @@ def main() -> None:
     print(f"{'all':24s} baseline {totals['baseline']:6.2f} s  current {totals['current']:6.2f} s"
           f"  {ratio:5.2f}x")  # fmt: skip
     if args.json:
-        summary = {"project": str(args.project), "injector": args.injector, **totals}
+        summary = {"project": str(args.project), **totals}
+        summary |= {"stages": "results"} if args.results else {"injector": args.injector}
         args.json.write_text(json.dumps({"stages": rows, "total": summary}, indent=1) + "\n")
 
 

@@ -175,3 +175,24 @@ def test_vus_pr_is_computed_only_where_params_opt_in():
     assert "vus_pr" not in episode_metrics(*args, MetricsConfig())
     opted = episode_metrics(*args, MetricsConfig(extra=["vus_pr"]))
     assert opted["vus_pr"].shape == (3,) and np.all((opted["vus_pr"] > 0) & (opted["vus_pr"] <= 1))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(st.integers(0, 9), min_size=4, max_size=60),
+    st.lists(st.booleans(), min_size=4, max_size=60),
+    st.integers(0, 12),
+)
+def test_buffers_computed_together_are_the_bits_of_each_alone(values, flags, window):
+    """VUS-PR computes its buffers together, one row each, and rows of equal labels share their
+    soft labels: every value must be the same bits as one buffer of one stream alone."""
+    n = min(len(values), len(flags))
+    scores = np.array(values[:n], dtype=float) / 7  # ties and inexact values
+    labels = np.array(flags[:n])
+    alone = [
+        np.mean([range_average_precision(s, labels, w) for w in range(window + 1)])
+        for s in (scores, scores[::-1])
+    ]
+    assert np.float64(vus_pr(scores, labels, window)).tobytes() == alone[0].tobytes()
+    rows = vus_pr_rows(np.stack([scores, scores[::-1]]), np.stack([labels, labels]), window)
+    assert rows.tobytes() == np.array(alone).tobytes()

@@ -289,25 +289,48 @@ def range_average_precision(scores: np.ndarray, labels: np.ndarray, buffer: int)
     score, so it is exact. No positive step gives 0.0 (as the average precision).
     """
     scores, labels = _range_inputs(scores, labels, buffer)
+    return _range_average_precisions(scores, labels, _label_surfaces(labels, [buffer]))[0]
+
+
+def _label_surfaces(
+    labels: np.ndarray, buffers: list[int]
+) -> tuple[np.ndarray, list[list[tuple[int, int]]]]:
+    """What the range-based AP takes from the labels at each buffer: the soft label mass outside
+    the anomaly ranges (len(buffers), T) and the ranges widened by ⌊buffer/2⌋ steps."""
+    outside = np.stack([np.where(labels, 0.0, soft_labels(labels, b)) for b in buffers])
+    return outside, [buffered_ranges(labels, b // 2) for b in buffers]
+
+
+def _range_average_precisions(
+    scores: np.ndarray, labels: np.ndarray,
+    surfaces: tuple[np.ndarray, list[list[tuple[int, int]]]],
+) -> list[float]:  # fmt: skip
+    """`range_average_precision` of one checked stream at each buffer of `surfaces`
+    (`_label_surfaces` of its labels). The order of the scores, their ties and the counts
+    inside the ranges do not depend on the buffer, so they are computed once and the buffers
+    together, one row each; a row's arithmetic is the one-buffer formula's, step for step
+    (cumulative sums along the row, one sum per row), so each value is the same bits as
+    computing its buffer alone."""
+    outside, ranges = surfaces
     n_positive = int(labels.sum())
     if n_positive == 0:
-        return 0.0
-    soft = soft_labels(labels, buffer)
+        return [0.0] * len(ranges)
     order = np.argsort(-scores, kind="stable")
     s = scores[order]
     _, last = _tie_bounds(s[None, :])
     group_end = np.flatnonzero(last[0] == np.arange(s.size))
     thresholds = s[group_end]
     inside = np.cumsum(labels[order])[group_end]
-    buffer_mass = np.cumsum(np.where(labels, 0.0, soft)[order])[group_end]
+    buffer_mass = np.cumsum(outside[:, order], axis=1)[:, group_end]
     true_mass = inside + buffer_mass
     recall = np.minimum(true_mass / (n_positive + buffer_mass / 2), 1.0)
-    ranges = buffered_ranges(labels, buffer // 2)
-    range_peaks = np.sort([scores[a:b].max() for a, b in ranges])
-    ranges_found = len(ranges) - np.searchsorted(range_peaks, thresholds, side="left")
-    tpr = recall * ranges_found / len(ranges)
+    ranges_found = np.stack([
+        len(r) - np.searchsorted(np.sort([scores[a:b].max() for a, b in r]), thresholds, "left")
+        for r in ranges
+    ])  # fmt: skip
+    tpr = recall * ranges_found / np.array([[len(r)] for r in ranges])
     precision = true_mass / (group_end + 1)
-    return float(np.sum(np.diff(tpr, prepend=0.0) * precision))
+    return [float(np.sum(row)) for row in np.diff(tpr, axis=1, prepend=0.0) * precision]
 
 
 def vus_pr(scores: np.ndarray, labels: np.ndarray, buffer: int = 10) -> float:
@@ -315,12 +338,23 @@ def vus_pr(scores: np.ndarray, labels: np.ndarray, buffer: int = 10) -> float:
     `range_average_precision` over the buffers 0, 1, …, `buffer` (TSB-AD's VUS-PR with its
     window 2L = `buffer`: the last surface's labels are softened ⌊buffer/2⌋ steps on each side
     of a range, as `temporal_auroc`'s are)."""
-    if buffer < 0:
-        raise ContractError(f"buffer must be >= 0; got {buffer}.")
-    return float(np.mean([range_average_precision(scores, labels, w) for w in range(buffer + 1)]))
+    scores, labels = _range_inputs(scores, labels, buffer)
+    surfaces = _label_surfaces(labels, list(range(buffer + 1)))
+    return float(np.mean(_range_average_precisions(scores, labels, surfaces)))
 
 
 def vus_pr_rows(scores: np.ndarray, labels: np.ndarray, buffer: int = 10) -> np.ndarray:
-    """`vus_pr` of every row of (N, T) scores against (N, T) labels."""
+    """`vus_pr` of every row of (N, T) scores against (N, T) labels. Rows of equal labels (a
+    set's streams share their fault's onset and offset) share their label surfaces."""
     scores, labels, _ = _rows(scores, labels, None)
-    return np.array([vus_pr(s, y, buffer) for s, y in zip(scores, labels, strict=True)])
+    if buffer < 0:
+        raise ContractError(f"buffer must be >= 0; got {buffer}.")
+    buffers = list(range(buffer + 1))
+    surfaces: dict[bytes, tuple[np.ndarray, list[list[tuple[int, int]]]]] = {}
+    values = []
+    for s, y in zip(scores, labels, strict=True):
+        surface = surfaces.get(y.tobytes())
+        if surface is None:
+            surface = surfaces[y.tobytes()] = _label_surfaces(y, buffers)
+        values.append(np.mean(_range_average_precisions(s, y, surface)))
+    return np.array(values, dtype=np.float64)
