@@ -42,7 +42,11 @@ def timed(project: Path, command: list[str], env: dict) -> float:
     return time.perf_counter() - start
 
 
-def results_commands(out: Path) -> dict[str, list[str]]:
+#: The results stages `--results` times, by name.
+RESULT_STAGES = ("metrics", "tier_metrics")
+
+
+def results_command(name: str, out: Path) -> list[str]:
     return {
         "metrics": [
             "oodrl", "metrics", "--scores", "scores", "--results", f"{out}/results.yaml",
@@ -53,7 +57,7 @@ def results_commands(out: Path) -> dict[str, list[str]]:
             "oodrl", "tier-metrics", "--scores", "scores", "--impact", "data/impact",
             "--results", f"{out}/tier_results.yaml", "--report", f"{out}/tiers",
         ],
-    }  # fmt: skip
+    }[name]  # fmt: skip
 
 
 def tree_hash(directory: Path) -> str:
@@ -74,7 +78,7 @@ def main() -> None:
     args = parser.parse_args()
     project = (ROOT / args.project).resolve()
     if args.results:
-        names = list(results_commands(Path()))
+        names = list(RESULT_STAGES)
     else:
         names = args.detectors or sorted(
             p.stem for p in (project / "models/detectors").glob("*.pkl")
@@ -93,7 +97,7 @@ def main() -> None:
             for which, env in envs.items():
                 out = Path(tmp) / which / name
                 command = (
-                    results_commands(out)[name]
+                    results_command(name, out)
                     if args.results
                     else stage_command(name, args.injector, out)
                 )

@@ -146,16 +146,24 @@ def _tsb_ad_loop(scores: np.ndarray, labels: np.ndarray, window: int) -> float:
     return area
 
 
-@settings(max_examples=60, deadline=None)
-@given(
-    st.lists(st.integers(0, 5), min_size=4, max_size=40),
-    st.lists(st.booleans(), min_size=4, max_size=40),
-    st.integers(0, 8),
+#: A stream's scores (few distinct values: many ties), labels and a label buffer.
+STREAMS = (
+    st.lists(st.integers(0, 9), min_size=4, max_size=60),
+    st.lists(st.booleans(), min_size=4, max_size=60),
+    st.integers(0, 12),
 )
-def test_matches_the_reference_loop(values, flags, window):
+
+
+def _stream(values: list[int], flags: list[bool]) -> tuple[np.ndarray, np.ndarray]:
+    """Scores (divided by 7: inexact values too) and labels of one length."""
     n = min(len(values), len(flags))
-    scores = np.array(values[:n], dtype=float)  # few distinct values: many ties
-    labels = np.array(flags[:n])
+    return np.array(values[:n], dtype=float) / 7, np.array(flags[:n])
+
+
+@settings(max_examples=60, deadline=None)
+@given(*STREAMS)
+def test_matches_the_reference_loop(values, flags, window):
+    scores, labels = _stream(values, flags)
     if not labels.any():
         assert range_average_precision(scores, labels, window) == 0.0
         return
@@ -178,17 +186,11 @@ def test_vus_pr_is_computed_only_where_params_opt_in():
 
 
 @settings(max_examples=60, deadline=None)
-@given(
-    st.lists(st.integers(0, 9), min_size=4, max_size=60),
-    st.lists(st.booleans(), min_size=4, max_size=60),
-    st.integers(0, 12),
-)
+@given(*STREAMS)
 def test_buffers_computed_together_are_the_bits_of_each_alone(values, flags, window):
     """VUS-PR computes its buffers together, one row each, and rows of equal labels share their
     soft labels: every value must be the same bits as one buffer of one stream alone."""
-    n = min(len(values), len(flags))
-    scores = np.array(values[:n], dtype=float) / 7  # ties and inexact values
-    labels = np.array(flags[:n])
+    scores, labels = _stream(values, flags)
     alone = [
         np.mean([range_average_precision(s, labels, w) for w in range(window + 1)])
         for s in (scores, scores[::-1])
