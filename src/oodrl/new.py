@@ -218,8 +218,9 @@ def _staged(directory: Path, root: Path) -> Iterator[Path]:
     _remove_dead_staging(directory.parent)
     staging = directory.with_name(f".{directory.name}.new-{os.getpid()}")
     with _signals_end_staging():
-        staging.mkdir()
         try:
+            # Inside the try: a signal handled just after mkdir returns still removes it.
+            staging.mkdir()
             yield staging
             _check(staging)
             # Rendered in the staging folder: a sibling of `directory`, so every path the

@@ -204,6 +204,35 @@ def test_a_callers_own_signal_handler_is_kept_and_cleans_up_too(root, monkeypatc
     assert list((root / "pipeline").iterdir()) == []
 
 
+def test_a_signal_the_moment_the_staging_folder_is_made_removes_it(root, monkeypatch):
+    """The signal handled as `mkdir` returns (CI's SIGTERM at `.cart.new-*` once met it there,
+    before the cleanup's try): the folder goes all the same."""
+    import pathlib
+
+    class Stopped(Exception):
+        pass
+
+    def stop(number, frame):
+        raise Stopped(number)
+
+    made = pathlib.Path.mkdir
+
+    def mkdir_then_signalled(self, *args, **kwargs):
+        made(self, *args, **kwargs)
+        if self.name.startswith(".cart.new-"):
+            os.kill(os.getpid(), signal.SIGTERM)  # its handler runs before this returns
+
+    monkeypatch.setattr(pathlib.Path, "mkdir", mkdir_then_signalled)
+    kept = signal.signal(signal.SIGTERM, stop)
+    try:
+        with pytest.raises(Stopped):
+            new_pipeline(root, "cart", "CartPole-v1", policy="cart_policies:balance", T=30,
+                         episodes=2)  # fmt: skip
+    finally:
+        signal.signal(signal.SIGTERM, kept)
+    assert list((root / "pipeline").iterdir()) == []
+
+
 def test_a_dead_runs_staging_folder_never_blocks_the_next(root):
     pipelines = root / "pipeline"
     exited = subprocess.Popen(["true"])
