@@ -9,8 +9,10 @@ command (headline set, sweep and tiers) as `dvc repro` would; with `--results`, 
 `tier_metrics` stage commands instead (every detector's results from the built score stores).
 Each command runs once with this checkout's sources and once with REV's (a clone; the command
 imports REV's `src` first), alternately so that both see the same load, each writing to a
-temporary directory. Prints the seconds of each, the ratio and whether the two wrote the same
-bytes; the project's own outputs are not touched.
+temporary directory. A scoring command of REV scores with the model REV's lock records (read
+from the DVC cache), so a params change that refits a detector is timed too. Prints the
+seconds of each, the ratio and whether the two wrote the same bytes; the project's own outputs
+are not touched.
 """
 
 from __future__ import annotations
@@ -27,10 +29,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def stage_command(name: str, injector: str, scores: Path) -> list[str]:
+def stage_command(name: str, injector: str, scores: Path, model: Path) -> list[str]:
     return [
         "oodrl", "score", name, "--injector", injector,
-        "--model", f"models/detectors/{name}.pkl", "--scores", str(scores),
+        "--model", str(model), "--scores", str(scores),
         "--ood", f"data/ood/{injector}.zarr", "--sweep", f"data/sweep/{injector}.zarr",
         "--tiers", f"data/tiers/{injector}.zarr",
     ]  # fmt: skip
@@ -58,6 +60,22 @@ def results_command(name: str, out: Path) -> list[str]:
             "--results", f"{out}/tier_results.yaml", "--report", f"{out}/tiers",
         ],
     }[name]  # fmt: skip
+
+
+def model_at(project: Path, name: str, rev: str) -> Path:
+    """The fitted model of `name` that the project's lock at `rev` records, in the DVC cache."""
+    import yaml
+
+    lock = (project / "detectors" / name / "dvc.lock").relative_to(ROOT)
+    shown = subprocess.run(["git", "show", f"{rev}:{lock.as_posix()}"], cwd=ROOT, check=True,
+                           capture_output=True, text=True).stdout  # fmt: skip
+    md5 = yaml.safe_load(shown)["stages"]["fit"]["outs"][0]["md5"]
+    cache = subprocess.run(["dvc", "cache", "dir"], cwd=project, check=True, capture_output=True,
+                           text=True).stdout.strip()  # fmt: skip
+    path = Path(cache) / "files" / "md5" / md5[:2] / md5[2:]
+    if not path.is_file():
+        raise SystemExit(f"{name}: the model {rev}'s lock records ({md5}) is not in {cache}")
+    return path
 
 
 def tree_hash(directory: Path) -> str:
@@ -94,12 +112,15 @@ def main() -> None:
         envs = {"baseline": {**os.environ, "PYTHONPATH": pythonpath}, "current": dict(os.environ)}
         for name in names:
             row = {}
+            models = {"current": Path("models/detectors") / f"{name}.pkl"}
+            if not args.results:
+                models["baseline"] = model_at(project, name, args.baseline)
             for which, env in envs.items():
                 out = Path(tmp) / which / name
                 command = (
                     results_command(name, out)
                     if args.results
-                    else stage_command(name, args.injector, out)
+                    else stage_command(name, args.injector, out, models[which])
                 )
                 row[which] = timed(project, command, env)
                 row[f"{which}_sha256"] = tree_hash(out)
