@@ -212,24 +212,34 @@ def test_an_interrupted_stage_leaves_its_output_absent_or_complete(sig, delay, w
 
 
 def test_show_warns_when_the_results_inputs_changed(tmp_path):
-    """`oodrl show` on a DVC output whose input changed since it was computed says so (a real
-    git + DVC repository); on a current output, and on a file DVC does not output, it is silent."""
+    """`oodrl show` on a DVC output whose inputs changed since it was computed says so (a real
+    git + DVC repository laid out as an oodrl project: a params edit reaches the results stage
+    through `check_params` only); on a current output, on one whose inputs are absent as in a
+    clone that pulled nothing, and on a file DVC does not output, it is silent."""
 
     def git_dvc(*args: str) -> None:
         subprocess.run(args, cwd=tmp_path, check=True, capture_output=True)
 
     git_dvc("git", "init", "-q")
     git_dvc(str(Path(OODRL).with_name("dvc")), "init", "-q")
+    (tmp_path / "params.yaml").write_text("seed: 0\n")
     (tmp_path / "in.yaml").write_text("sweep: {}\n")
     (tmp_path / "dvc.yaml").write_text(
-        "stages:\n  copy:\n    cmd: mkdir -p reports && cp in.yaml reports/results.yaml\n"
-        "    deps: [in.yaml]\n    outs: [reports/results.yaml]\n"
+        "stages:\n"
+        "  check_params:\n    cmd: cp params.yaml checked\n"
+        "    deps: [params.yaml]\n    outs: [checked]\n"
+        "  mid:\n    cmd: cp in.yaml mid.yaml\n    deps: [checked, in.yaml]\n    outs: [mid.yaml]\n"
+        "  copy:\n    cmd: mkdir -p reports && cp mid.yaml reports/results.yaml\n"
+        "    deps: [checked, mid.yaml]\n    outs: [reports/results.yaml]\n"
     )
     git_dvc(str(Path(OODRL).with_name("dvc")), "repro", "-q")
     current = oodrl("show", "reports/results.yaml", cwd=tmp_path)
     assert current.returncode == 0 and current.stderr == ""
     assert oodrl("show", "in.yaml", cwd=tmp_path).stderr == ""
-    (tmp_path / "in.yaml").write_text("sweep: {changed: {}}\n")
+    for unpulled in ("checked", "mid.yaml"):  # a clone that pulled nothing: nothing changed
+        (tmp_path / unpulled).unlink()
+    assert oodrl("show", "reports/results.yaml", cwd=tmp_path).stderr == ""
+    (tmp_path / "params.yaml").write_text("seed: 1\n")  # two stages upstream of the results
     stale = oodrl("show", "reports/results.yaml", cwd=tmp_path)
     assert stale.returncode == 0 and stale.stderr.count("\n") == 1
-    assert stale.stderr.startswith("warning: reports/results.yaml is stale")
+    assert stale.stderr.startswith("warning: reports/results.yaml may be stale")

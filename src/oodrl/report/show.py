@@ -76,10 +76,36 @@ def show(path: str | Path, max_us_per_step: float | None = None) -> str:
     return cost_table(data["cost"], results, max_us_per_step)
 
 
+#: The stage of an oodrl project that every params file and source file reaches the others by.
+CHECK_STAGE = "check_params"
+#: What `dvc status` says of a dependency or output absent from the workspace, as in a clone
+#: that did not pull it: nothing is known to have changed, and the lock still records it.
+ABSENT = frozenset({"deleted", "not in cache"})
+
+
+def _changed(entry: Any) -> bool:
+    """Whether one entry of a stage's `dvc status --json` list says something changed: its
+    command, a params value (even a deleted one), a file that is there but differs."""
+    if not isinstance(entry, Mapping):  # "changed command", "always changed"
+        return True
+    return any(
+        isinstance(state, Mapping) or state not in ABSENT
+        for changes in entry.values()  # "changed deps" / "changed outs": {path: state}
+        for state in (changes.values() if isinstance(changes, Mapping) else [changes])
+    )
+
+
 def stale_warning(path: str | Path) -> str | None:
     """A warning when DVC finds that a pipeline output's inputs changed since it was computed
     (SPEC §22: no number shown without a word when it may be stale); None when current, or
-    when the file is not a DVC output (then nothing is known of its inputs)."""
+    when the file is not a DVC output (then nothing is known of its inputs). Inputs absent from
+    the workspace (a fresh clone that pulled nothing) are no change: the committed result is
+    what the lock records (SPEC §21).
+
+    DVC's `status --with-deps` of a file checks only the stage that writes it, so an oodrl
+    project's `check_params` is asked too: every params file and source edit reaches the other
+    stages through it (a source edit outside the file's code stamps changes nothing: "may")."""
+    import json
     import os
     import shutil
     import subprocess
@@ -93,15 +119,25 @@ def stale_warning(path: str | Path) -> str | None:
     if project is None or dvc is None:
         return None
     target = path.relative_to(project).as_posix()
+    try:
+        stages = yamlio.load((project / "dvc.yaml").read_text(encoding="utf-8"))["stages"]
+        targets = [target, *([CHECK_STAGE] if CHECK_STAGE in stages else [])]
+    except (yaml.YAMLError, UnicodeDecodeError, TypeError, KeyError):
+        targets = [target]  # DVC itself says what is wrong with such a dvc.yaml
     done = subprocess.run(
-        [dvc, "status", "--with-deps", target],
+        [dvc, "status", "--with-deps", "--json", *targets],
         cwd=project, capture_output=True, text=True, check=False,
     )  # fmt: skip
     # A failure means the file is no output DVC knows (its inputs are then unknown).
-    if done.returncode != 0 or "up to date" in done.stdout:
+    try:
+        stages = json.loads(done.stdout) if done.returncode == 0 else {}
+    except ValueError:
+        stages = {}
+    if not any(_changed(entry) for entries in stages.values() for entry in entries):
         return None
     where = os.path.relpath(project)
     return (
-        f"warning: {target} is stale: its stage or an input changed since it was computed "
-        f"(`dvc status --with-deps {target}`{'' if where == '.' else f' in {where}'} lists what)"
+        f"warning: {target} may be stale: its stage or an input changed since it was computed "
+        f"(`dvc status --with-deps {' '.join(targets)}`{'' if where == '.' else f' in {where}'} "
+        "lists what)"
     )
