@@ -178,29 +178,37 @@ def test_a_signal_while_it_writes_removes_the_staging_folder(root, signum, where
     assert list((root / "pipeline").iterdir()) == []
 
 
-def test_a_callers_own_signal_handler_is_kept_and_cleans_up_too(root, monkeypatch):
-    """oodrl's CLI turns SIGTERM into KeyboardInterrupt: the staging folder goes just the same,
-    and the caller's handler is in place after."""
-    import oodrl.pipeline
+class Stopped(Exception):
+    """Raised by `stop`: a caller's own SIGTERM handler, as oodrl's CLI has one."""
 
-    class Stopped(Exception):
-        pass
 
-    def stop(number, frame):
-        raise Stopped(number)
+def stop(number, frame):
+    raise Stopped(number)
 
-    def interrupted(*args, **kwargs):
-        os.kill(os.getpid(), signal.SIGTERM)
 
-    monkeypatch.setattr(oodrl.pipeline, "subrepo_files", interrupted)
+def new_pipeline_stopped(root: Path):
+    """`oodrl new` called with `stop` as SIGTERM's handler, stopped by the SIGTERM a patched
+    function sends; the handler in place right after (the previous one restored in any case)."""
     kept = signal.signal(signal.SIGTERM, stop)
     try:
         with pytest.raises(Stopped):
             new_pipeline(root, "cart", "CartPole-v1", policy="cart_policies:balance", T=30,
                          episodes=2)  # fmt: skip
-        assert signal.getsignal(signal.SIGTERM) is stop
+        return signal.getsignal(signal.SIGTERM)
     finally:
         signal.signal(signal.SIGTERM, kept)
+
+
+def test_a_callers_own_signal_handler_is_kept_and_cleans_up_too(root, monkeypatch):
+    """oodrl's CLI turns SIGTERM into KeyboardInterrupt: the staging folder goes just the same,
+    and the caller's handler is in place after."""
+    import oodrl.pipeline
+
+    def interrupted(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(oodrl.pipeline, "subrepo_files", interrupted)
+    assert new_pipeline_stopped(root) is stop
     assert list((root / "pipeline").iterdir()) == []
 
 
@@ -208,12 +216,6 @@ def test_a_signal_the_moment_the_staging_folder_is_made_removes_it(root, monkeyp
     """The signal handled as `mkdir` returns (CI's SIGTERM at `.cart.new-*` once met it there,
     before the cleanup's try): the folder goes all the same."""
     import pathlib
-
-    class Stopped(Exception):
-        pass
-
-    def stop(number, frame):
-        raise Stopped(number)
 
     made = pathlib.Path.mkdir
 
@@ -223,13 +225,7 @@ def test_a_signal_the_moment_the_staging_folder_is_made_removes_it(root, monkeyp
             os.kill(os.getpid(), signal.SIGTERM)  # its handler runs before this returns
 
     monkeypatch.setattr(pathlib.Path, "mkdir", mkdir_then_signalled)
-    kept = signal.signal(signal.SIGTERM, stop)
-    try:
-        with pytest.raises(Stopped):
-            new_pipeline(root, "cart", "CartPole-v1", policy="cart_policies:balance", T=30,
-                         episodes=2)  # fmt: skip
-    finally:
-        signal.signal(signal.SIGTERM, kept)
+    new_pipeline_stopped(root)
     assert list((root / "pipeline").iterdir()) == []
 
 
