@@ -120,8 +120,8 @@ def stale_warning(path: str | Path) -> str | None:
         return None
     target = path.relative_to(project).as_posix()
     try:
-        stages = yamlio.load((project / "dvc.yaml").read_text(encoding="utf-8"))["stages"]
-        targets = [target, *([CHECK_STAGE] if CHECK_STAGE in stages else [])]
+        declared = yamlio.load((project / "dvc.yaml").read_text(encoding="utf-8"))["stages"]
+        targets = [target, *([CHECK_STAGE] if CHECK_STAGE in declared else [])]
     except (yaml.YAMLError, UnicodeDecodeError, TypeError, KeyError):
         targets = [target]  # DVC itself says what is wrong with such a dvc.yaml
     done = subprocess.run(
@@ -130,10 +130,10 @@ def stale_warning(path: str | Path) -> str | None:
     )  # fmt: skip
     # A failure means the file is no output DVC knows (its inputs are then unknown).
     try:
-        stages = json.loads(done.stdout) if done.returncode == 0 else {}
+        status = json.loads(done.stdout) if done.returncode == 0 else {}
     except ValueError:
-        stages = {}
-    if not any(_changed(entry) for entries in stages.values() for entry in entries):
+        status = {}
+    if not any(_changed(entry) for entries in status.values() for entry in entries):
         return None
     where = os.path.relpath(project)
     return (
