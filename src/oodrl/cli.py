@@ -763,6 +763,33 @@ def readme_table(
     typer.echo(f"{readme}: headline table updated from {headline}")
 
 
+def _settle_store_writes() -> None:
+    """Wait (a few seconds at most) for the writes zarr's IO thread has in flight.
+
+    zarr runs its synchronous API's coroutines on a thread of its own; an interrupt stops the
+    main thread only, so without this a store's `finally` could remove its temporary folder
+    while a write was still to land in it, and that write would re-create the folder. An
+    interrupted command abandons the coroutines it had not yet handed over: no warning for them.
+    """
+    import asyncio
+    import contextlib
+    import warnings
+
+    warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
+    # Absent when the command never touched a store; without its loop while it is imported.
+    loop = getattr(sys.modules.get("zarr.core.sync"), "loop", [None])[0]
+    if loop is None or not loop.is_running():
+        return
+
+    async def settled() -> None:
+        while pending := asyncio.all_tasks() - {asyncio.current_task()}:
+            await asyncio.wait(pending)
+
+    # A write that will not finish is no reason to keep the process alive.
+    with contextlib.suppress(Exception):
+        asyncio.run_coroutine_threadsafe(settled(), loop).result(timeout=5)
+
+
 def main() -> None:
     """The console entry point: every way out of a command follows SPEC §22's one rule.
 
@@ -773,10 +800,25 @@ def main() -> None:
     import signal
 
     received: list[signal.Signals] = []
+    finished = False  # the command has returned: a signal now has nothing left to unwind
 
     def interrupt(signum: int, frame: object) -> None:
         received.append(signal.Signals(signum))
+        if finished:
+            return  # its outputs are whole; raising now would only print a traceback at exit
+        _settle_store_writes()
         raise KeyboardInterrupt
+
+    def unraisable(report) -> None:
+        # A signal that lands in code that cannot raise (a __del__, a weakref callback) is
+        # printed by Python as a traceback and dropped: stay quiet and deliver it again, so
+        # the command still stops at once instead of running to its end.
+        if not (received and issubclass(report.exc_type, KeyboardInterrupt)):
+            default_unraisable(report)
+        elif not finished:
+            redelivery = threading.Timer(0.01, os.kill, (os.getpid(), received[-1]))
+            redelivery.daemon = True
+            redelivery.start()
 
     def interrupted() -> NoReturn:
         # typer turns a KeyboardInterrupt into exit code 130 silently; say which signal it was.
@@ -784,12 +826,18 @@ def main() -> None:
         typer.echo(f"error: interrupted ({name.name})", err=True)
         sys.exit(128 + name.value)
 
+    import threading
+
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         if signal.getsignal(signum) in (signal.SIG_DFL, signal.default_int_handler):
             signal.signal(signum, interrupt)  # an ignored one stays ignored: `nohup oodrl …`
+    default_unraisable, sys.unraisablehook = sys.unraisablehook, unraisable
     debug = os.environ.get(DEBUG_VARIABLE) == "1"
     try:
-        code = app(standalone_mode=False)
+        try:
+            code = app(standalone_mode=False)
+        finally:
+            finished = True
     except typer.TyperException as error:  # click's usage errors (exit code 2), as typer has them
         context = getattr(error, "ctx", None)
         where = context.command_path if context else "oodrl"

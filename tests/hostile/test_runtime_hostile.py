@@ -9,6 +9,7 @@ import random
 import shutil
 import signal
 import subprocess
+import sys
 import time
 import zipfile
 from pathlib import Path
@@ -209,6 +210,97 @@ def test_an_interrupted_stage_leaves_its_output_absent_or_complete(sig, delay, w
         read_trajectories(workdir / "new.zarr", stage=None)
     left = {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} - set(before)
     assert left <= {"new.zarr"}, left
+
+
+# collect-eval as its console script runs it, with zarr's first file write held: zarr has handed it
+# to a worker thread, which sends the signal and writes half a second later, and the process lives
+# until it has written, as a slower exit would let it: the write an interrupt leaves in flight,
+# made certain instead of left to chance.
+WRITE_IN_FLIGHT = """
+import atexit, signal, sys, threading, time
+import zarr.storage._local as local
+
+original, written = local._put, threading.Event()
+
+def held(*args, **kwargs):
+    if getattr(held, "fired", False):
+        return original(*args, **kwargs)
+    held.fired = True
+    # To the main thread, as the kernel delivers a signal from outside; sent to the process from
+    # this thread, it could wake nothing until this write returned.
+    signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+    time.sleep(0.5)  # the main thread unwinds meanwhile
+    try:
+        return original(*args, **kwargs)
+    finally:
+        written.set()
+
+local._put = held
+atexit.register(written.wait, 5)
+sys.argv = ["oodrl", "collect-eval", "--policy", "models/policy.pt", "--out", "new.zarr"]
+from oodrl.cli import main
+main()
+"""
+
+
+def test_a_signal_during_a_store_write_leaves_no_temporary_folder(workdir):
+    """zarr writes on a thread of its own, which an interrupt does not stop: the store's cleanup
+    must wait for the write in flight, or the write re-creates the folder the cleanup removed."""
+    before = snapshot(workdir)
+    done = subprocess.run([sys.executable, "-c", WRITE_IN_FLIGHT], cwd=workdir,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert_one_line_error(done, 128 + signal.SIGTERM, "interrupted (SIGTERM)")
+    left = {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} - set(before)
+    assert not left, left
+    assert not list(workdir.glob(".new.zarr*")), "a temporary folder stayed"
+
+
+# collect-eval with a signal sent where Python cannot raise it: in a __del__ while the command
+# runs (the store is about to be written), and in an exit handler after it has finished.
+SIGNAL_IN = """
+import atexit, signal, sys, threading, time
+import oodrl.store
+
+def trip():
+    signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+    time.sleep(0.05)  # Python runs the handler here, inside the caller that cannot raise
+
+class Tripping:
+    def __del__(self):
+        trip()
+
+original = oodrl.store.write_store
+
+def write_store(*args, **kwargs):
+    Tripping()  # dropped at once: its __del__ runs
+    return original(*args, **kwargs)
+
+if sys.argv[1] == "del":
+    oodrl.store.write_store = write_store
+else:
+    atexit.register(trip)
+sys.argv = ["oodrl", "collect-eval", "--policy", "models/policy.pt", "--out", "new.zarr"]
+from oodrl.cli import main
+main()
+"""
+
+
+def test_a_signal_where_python_cannot_raise_it_is_not_a_traceback(workdir):
+    """In a __del__ Python prints a signal's exception as a traceback and drops it: oodrl keeps
+    it quiet and delivers it again, so the command still stops, in one line, with nothing
+    half-written. After the command has finished (an exit handler) it is ignored: the output
+    is whole, and there is nothing left to unwind."""
+    before = snapshot(workdir)
+    done = subprocess.run([sys.executable, "-c", SIGNAL_IN, "del"], cwd=workdir,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert_one_line_error(done, 128 + signal.SIGTERM, "interrupted (SIGTERM)")
+    assert {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} == set(before)
+    assert not list(workdir.glob("*new.zarr*")), "the store was written after the signal"
+
+    done = subprocess.run([sys.executable, "-c", SIGNAL_IN, "exit"], cwd=workdir,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert (done.returncode, done.stderr) == (0, ""), done.stderr
+    read_trajectories(workdir / "new.zarr", stage=None)
 
 
 def test_show_warns_when_the_results_inputs_changed(tmp_path):
