@@ -49,6 +49,8 @@ PARAMS_FILE = "params.yaml"
 #: Where the interpreter caches bytecode beside the sources: never a code dep (.dvcignore).
 BYTECODE_DIR = "__pycache__"
 CHECK_VERB = "check-params"
+#: The stage every params file and source file reaches the others' stages by.
+CHECK_STAGE = "check_params"
 CHECKED = "data/params.checked"
 CODE_STAMPS = "data/code"
 #: An environment pipeline's stages read their params keys here: the params file merged with
@@ -693,7 +695,7 @@ def _read_merged_params(stages: dict[str, Any], params: dict[str, Any]) -> None:
             for axis, spec in stage["matrix"].items():
                 stage["matrix"][axis] = _flow(_values(spec, params))
         body = stage["do"] if "foreach" in stage else stage
-        if name == "check_params":
+        if name == CHECK_STAGE:
             body["cmd"] += f" --merged {MERGED_PARAMS}"
             # Tracked by git, as params.yaml is: a fresh clone's `dvc repro --pull
             # --allow-missing` reads every stage's params from it (DVC counts a params file

@@ -11,6 +11,7 @@ import yaml
 
 from oodrl import yamlio
 from oodrl.errors import ConfigError, StoreError
+from oodrl.pipeline import CHECK_STAGE
 from oodrl.report.tables import cost_table, render_tables, sweep_tables
 
 RECORD_KEYS = frozenset({"kind", "detector", "injector", "mode", "severity", "metrics"})
@@ -76,8 +77,6 @@ def show(path: str | Path, max_us_per_step: float | None = None) -> str:
     return cost_table(data["cost"], results, max_us_per_step)
 
 
-#: The stage of an oodrl project that every params file and source file reaches the others by.
-CHECK_STAGE = "check_params"
 #: What `dvc status` says of a dependency or output absent from the workspace, as in a clone
 #: that did not pull it: nothing is known to have changed, and the lock still records it.
 ABSENT = frozenset({"deleted", "not in cache"})
