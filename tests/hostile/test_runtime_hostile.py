@@ -273,6 +273,7 @@ original = oodrl.store.write_store
 
 def write_store(*args, **kwargs):
     Tripping()  # dropped at once: its __del__ runs
+    time.sleep(1)  # the command's work goes on: the signal must still stop it, before the store
     return original(*args, **kwargs)
 
 if sys.argv[1] == "del":
