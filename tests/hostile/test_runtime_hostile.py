@@ -90,6 +90,17 @@ def test_monitor_refuses_in_one_line_with_exit_2(case, args, needles, repo_root)
     assert subprocess.run(status, cwd=repo_root, capture_output=True, text=True).stdout == before
 
 
+def _new_files(workdir: Path, before: dict[str, str]) -> set[str]:
+    """The files a command added to `workdir` since `before`, its run_meta.yaml aside."""
+    return {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} - set(before)
+
+
+def _driven(workdir: Path, driver: str, *args: str) -> subprocess.CompletedProcess:
+    """A command run in `workdir` by a Python driver script (below: WRITE_IN_FLIGHT, SIGNAL_IN)."""
+    return subprocess.run([sys.executable, "-c", driver, *args], cwd=workdir,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+
+
 def _truncate(path: Path) -> None:
     path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
 
@@ -208,7 +219,7 @@ def test_an_interrupted_stage_leaves_its_output_absent_or_complete(sig, delay, w
     # is written, or on the way out) interrupts a command whose store is already whole.
     if process.returncode == 0 or (workdir / "new.zarr").exists():
         read_trajectories(workdir / "new.zarr", stage=None)
-    left = {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} - set(before)
+    left = _new_files(workdir, before)
     assert left <= {"new.zarr"}, left
 
 
@@ -247,10 +258,9 @@ def test_a_signal_during_a_store_write_leaves_no_temporary_folder(workdir):
     """zarr writes on a thread of its own, which an interrupt does not stop: the store's cleanup
     must wait for the write in flight, or the write re-creates the folder the cleanup removed."""
     before = snapshot(workdir)
-    done = subprocess.run([sys.executable, "-c", WRITE_IN_FLIGHT], cwd=workdir,
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = _driven(workdir, WRITE_IN_FLIGHT)
     assert_one_line_error(done, 128 + signal.SIGTERM, "interrupted (SIGTERM)")
-    left = {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} - set(before)
+    left = _new_files(workdir, before)
     assert not left, left
     assert not list(workdir.glob(".new.zarr*")), "a temporary folder stayed"
 
@@ -292,14 +302,12 @@ def test_a_signal_where_python_cannot_raise_it_is_not_a_traceback(workdir):
     half-written. After the command has finished (an exit handler) it is ignored: the output
     is whole, and there is nothing left to unwind."""
     before = snapshot(workdir)
-    done = subprocess.run([sys.executable, "-c", SIGNAL_IN, "del"], cwd=workdir,
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = _driven(workdir, SIGNAL_IN, "del")
     assert_one_line_error(done, 128 + signal.SIGTERM, "interrupted (SIGTERM)")
     assert {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} == set(before)
     assert not list(workdir.glob("*new.zarr*")), "the store was written after the signal"
 
-    done = subprocess.run([sys.executable, "-c", SIGNAL_IN, "exit"], cwd=workdir,
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    done = _driven(workdir, SIGNAL_IN, "exit")
     assert (done.returncode, done.stderr) == (0, ""), done.stderr
     read_trajectories(workdir / "new.zarr", stage=None)
 
