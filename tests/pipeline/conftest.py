@@ -85,7 +85,9 @@ def built_repo(tmp_path_factory, repo_root, _default_params) -> Path:
     (trace / "sitecustomize.py").write_text(IMPORT_TRACE)
     repo = copy_project(repo_root, base / "repo", tiny_params(_default_params))
     policy = {name: (repo / name).read_bytes() for name in POLICY_FILES}
-    repro(repo, env={"PYTHONPATH": python_path(trace), "OODRL_IMPORT_TRACE": str(trace)})
+    # Cold stage processes: a warm one (oodrl.warm) holds the modules its server preloaded too.
+    trace_env = {"PYTHONPATH": python_path(trace), "OODRL_IMPORT_TRACE": str(trace)}
+    repro(repo, env={**trace_env, "OODRL_WARM": "0"})
     # train_policy may run (its deps changed since dvc.lock was written) but never retrains.
     assert {name: (repo / name).read_bytes() for name in POLICY_FILES} == policy
     return repo
