@@ -299,7 +299,11 @@ def _session(connection: socket.socket) -> None:
     try:
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
         signal.signal(signal.SIGTERM, signal.SIG_DFL)
-        message, fds, _, _ = socket.recv_fds(connection, 1 << 20, 3)
+        message, fds, _, _ = socket.recv_fds(connection, 1 << 16, 3)
+        while message and not message.endswith(b"\n"):  # a stream: the request may come in parts
+            if not (more := connection.recv(1 << 16)):
+                break  # the client went away: json.loads fails and the session ends
+            message += more
         request = json.loads(message)
         stage = os.fork()
         if stage == 0:
