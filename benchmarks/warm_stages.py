@@ -18,19 +18,8 @@ import subprocess
 import time
 from pathlib import Path
 
-import yaml
-
+from oodrl.testing.pipeline import lock_hashes
 from oodrl.warm import stop_servers
-
-
-def output_hashes(project: Path) -> dict[tuple[str, str], str]:
-    """(lock file, output path) -> the md5 every dvc.lock of the project records for it."""
-    hashes = {}
-    for lock in sorted(project.glob("**/dvc.lock")):
-        for stage in yaml.safe_load(lock.read_text())["stages"].values():
-            for out in stage.get("outs", []):
-                hashes[str(lock.relative_to(project)), out["path"]] = out["md5"]
-    return hashes
 
 
 def forced_repro(project: Path, stages: list[str], warm: bool) -> tuple[float, int]:
@@ -54,12 +43,12 @@ def main() -> None:
     parser.add_argument("--stages", nargs="*", default=[])
     parser.add_argument("--rounds", type=int, default=1)
     args = parser.parse_args()
-    before = output_hashes(args.project)
+    before = lock_hashes(args.project)
     walls: dict[bool, list[float]] = {False: [], True: []}
     for round_ in range(args.rounds):
         for warm in (False, True):
             wall, stages = forced_repro(args.project, args.stages, warm)
-            same = output_hashes(args.project) == before
+            same = lock_hashes(args.project) == before
             walls[warm].append(wall)
             print(
                 f"round {round_ + 1} {'warm' if warm else 'cold'}: {wall:.1f} s, {stages} stages, "

@@ -27,6 +27,7 @@ import hashlib
 import io
 import json
 import os
+import signal
 import socket
 import sys
 from pathlib import Path
@@ -99,23 +100,34 @@ def socket_path(environ: dict[str, str] | None = None) -> Path:
     return Path(base) / f"oodrl-warm-{os.getuid()}" / f"{name}.sock"
 
 
+def server_pid(socket_file: Path) -> int | None:
+    """The pid its lock file names for the server of `socket_file` (None when it names none)."""
+    try:
+        return int(Path(f"{socket_file}.lock").read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def stop_servers(environ: dict[str, str] | None = None) -> int:
     """Stop the warm servers of this user (those under `environ`'s runtime folder); how many."""
-    import signal
-
     stopped = 0
-    for lock in socket_path(environ).parent.glob("*.lock"):
-        with contextlib.suppress(ValueError, IndexError, OSError):
-            os.kill(int(lock.read_text().split()[0]), signal.SIGTERM)
-            stopped += 1
+    for lock in socket_path(environ).parent.glob("*.sock.lock"):
+        if (pid := server_pid(lock.with_suffix(""))) is not None:
+            with contextlib.suppress(OSError):
+                os.kill(pid, signal.SIGTERM)
+                stopped += 1
     return stopped
+
+
+def _default_handler(signum: int):
+    """What a fresh interpreter has for `signum`: KeyboardInterrupt for SIGINT, else SIG_DFL."""
+    return signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
 
 
 # -- the client --------------------------------------------------------------------------------
 def _run_warm() -> int | None:
     """The stage's wait status as `os.waitstatus_to_exitcode` gives it (negative: killed by
     that signal), or None when no server could run it (one is started for the next stage)."""
-    import signal
 
     path = socket_path()
     if not _private(path.parent):
@@ -158,8 +170,8 @@ def _run_warm() -> int | None:
                 _start_server(path)
             for name, disposition in dispositions.items():
                 if disposition == "default":
-                    default = signal.SIG_DFL if name != "SIGINT" else signal.default_int_handler
-                    signal.signal(getattr(signal, name), default)
+                    signum = getattr(signal, name)
+                    signal.signal(signum, _default_handler(signum))
             if pending:  # interrupted before any stage began: nothing was written
                 return -pending[0]
             return None
@@ -187,7 +199,6 @@ def _private(folder: Path) -> bool:
 
 def _exit_like(code: int) -> None:
     """Exit as the stage did: with its code, or killed by its signal."""
-    import signal
 
     if code >= 0:
         sys.exit(code)
@@ -218,7 +229,6 @@ def serve(path: Path) -> None:
     """Listen at `path` until idle or stale; one forked session per request."""
     import fcntl
     import importlib
-    import signal
 
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
     # Opened without truncating: the file may name the server that holds the lock.
@@ -293,7 +303,6 @@ def _module_files() -> dict[str, tuple[int, int, int]]:
 def _session(connection: socket.socket) -> None:
     """Receive one request, fork its stage, report its wait status; kill it if the client dies."""
     import select
-    import signal
 
     code = 1
     try:
@@ -328,7 +337,6 @@ def _session(connection: socket.socket) -> None:
 def _stage(request: dict, fds: list[int]) -> None:
     """Become the client's stage process and run the CLI."""
     import atexit
-    import signal
     import threading
 
     from oodrl.parallel import THREAD_POOL_VARIABLES
@@ -346,8 +354,8 @@ def _stage(request: dict, fds: list[int]) -> None:
             os.environ.setdefault(variable, "1")
         for name, disposition in request["signals"].items():
             signum = getattr(signal, name)
-            default = signal.default_int_handler if signum == signal.SIGINT else signal.SIG_DFL
-            signal.signal(signum, signal.SIG_IGN if disposition == "ignore" else default)
+            handler = signal.SIG_IGN if disposition == "ignore" else _default_handler(signum)
+            signal.signal(signum, handler)
         sys.stdin = io.TextIOWrapper(io.FileIO(0, "r", closefd=False), encoding=sys.stdin.encoding)
         sys.stdout = _text_stream(1, "strict")
         sys.stderr = _text_stream(2, "backslashreplace")

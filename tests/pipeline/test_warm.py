@@ -16,6 +16,7 @@ import pytest
 from conftest import DETECTORS, INJECTORS, detector_stages, edit_params, python_path
 
 from oodrl.testing.pipeline import environment, lock_hashes, repro, run
+from oodrl.warm import server_pid
 
 # Loaded by every Python process of the test (PYTHONPATH), the server included: at exit each
 # records its argv, whether it ran the CLI (a warm command's client does not) and whether its
@@ -59,17 +60,11 @@ def _socket(env: dict[str, str]) -> Path:
     return Path(done.stdout.strip())
 
 
-def _lock(env: dict[str, str]) -> Path:
-    return Path(f"{_socket(env)}.lock")
-
-
 def _server(env: dict[str, str]) -> int | None:
     """The pid of the live server for `env`, if one serves."""
-    try:
-        pid = int(_lock(env).read_text().split()[0])
-    except (OSError, ValueError, IndexError):
-        return None
-    return pid if _alive(pid) and _socket(env).exists() else None
+    socket_file = _socket(env)
+    pid = server_pid(socket_file)
+    return pid if pid is not None and _alive(pid) and socket_file.exists() else None
 
 
 def _alive(pid: int) -> bool:
