@@ -1,0 +1,77 @@
+"""benchmarks/lock_diff.py judges a build's changed outputs: a change under a detector that is
+not certified machine-independent is allowed (SPEC §14), any other is a reproduction failure.
+Its judgement of results files, on hand-made documents."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "lock_diff.py"
+
+
+@pytest.fixture(scope="module")
+def lock_diff():
+    spec = importlib.util.spec_from_file_location("lock_diff", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+RESULTS = {
+    "protocol_version": 3,
+    "records": [
+        {"detector": "cusum", "injector": "stuck_actuator", "auroc": {"mean": 0.91}},
+        {"detector": "pyod_iforest", "injector": "stuck_actuator", "auroc": {"mean": 0.71}},
+    ],
+    "sweep": {"stuck_actuator": {"0.5": {"pyod_iforest": {"mean": 0.6}, "cusum": {"mean": 0.8}}}},
+}
+
+
+def _changed(**edits) -> dict:
+    document = json.loads(json.dumps(RESULTS))
+    if "record" in edits:
+        document["records"][edits["record"]]["auroc"]["mean"] += 1e-6
+    if "sweep" in edits:
+        document["sweep"]["stuck_actuator"]["0.5"][edits["sweep"]]["mean"] += 1e-6
+    return document
+
+
+@pytest.mark.parametrize(
+    ("edits", "found", "unexplained"),
+    [
+        ({}, set(), 0),
+        ({"record": 1}, {"pyod_iforest"}, 0),  # a record names its detector in a field
+        ({"sweep": "pyod_iforest"}, {"pyod_iforest"}, 0),  # a key names it
+        ({"record": 0}, set(), 1),  # a certified detector's number moved
+        ({"record": 1, "sweep": "cusum"}, {"pyod_iforest"}, 1),
+    ],
+)
+def test_a_yaml_change_is_explained_only_under_an_uncertified_detector(
+    lock_diff, tmp_path, edits, found, unexplained
+):
+    path = tmp_path / "results.yaml"
+    old, new = yaml.safe_dump(RESULTS), yaml.safe_dump(_changed(**edits))
+    assert lock_diff.changed_detectors(path, old, new, {"pyod_iforest"}) == (found, unexplained)
+
+
+def test_a_json_key_joining_a_name_with_other_words_names_it(lock_diff, tmp_path):
+    old = json.dumps({"iqm.pyod_iforest": 0.5, "iqm.cusum": 0.9})
+    new = json.dumps({"iqm.pyod_iforest": 0.51, "iqm.cusum": 0.9})
+    path = tmp_path / "metrics.json"
+    assert lock_diff.changed_detectors(path, old, new, {"pyod_iforest"}) == ({"pyod_iforest"}, 0)
+    moved = json.dumps({"iqm.pyod_iforest": 0.5, "iqm.cusum": 0.91})
+    assert lock_diff.changed_detectors(path, old, moved, {"pyod_iforest"}) == (set(), 1)
+
+
+def test_a_table_row_is_explained_by_the_detector_it_names(lock_diff, tmp_path):
+    old = "| detector | AUROC |\n| cusum | 0.91 |\n| pyod_iforest † | 0.71 |\n"
+    path = tmp_path / "tables.md"
+    new = old.replace("0.71", "0.72")
+    assert lock_diff.changed_detectors(path, old, new, {"pyod_iforest"}) == ({"pyod_iforest"}, 0)
+    new = old.replace("0.91", "0.92")
+    assert lock_diff.changed_detectors(path, old, new, {"pyod_iforest"}) == (set(), 2)
