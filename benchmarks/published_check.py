@@ -38,7 +38,7 @@ from pathlib import Path
 
 from oodrl.pipeline import SUITE_DIR, pipeline_dirs
 from oodrl.suite_run import ran_stages
-from oodrl.testing.pipeline import environment
+from oodrl.testing.pipeline import run
 
 ROOT = Path(__file__).resolve().parents[1]
 REMOTE = "published"
@@ -46,15 +46,6 @@ REMOTE = "published"
 
 def say(message: str) -> None:
     print(message, file=sys.stderr, flush=True)
-
-
-def sh(cwd: Path, *args: str, check: bool = True) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", "dvc", *args[1:]] if args[0] == "dvc" else list(args)
-    done = subprocess.run(command, cwd=cwd, env=environment(), capture_output=True, text=True)
-    if check and done.returncode != 0:
-        raise RuntimeError(f"`{' '.join(args)}` in {cwd} failed ({done.returncode}):\n"
-                           f"{done.stdout[-3000:]}\n{done.stderr[-3000:]}")  # fmt: skip
-    return done
 
 
 @contextlib.contextmanager
@@ -84,14 +75,14 @@ def projects(clone: Path) -> list[Path]:
 
 
 def fresh_clone(dest: Path, url: str, every_project: bool) -> Path:
-    sh(ROOT, "git", "clone", "--quiet", "--no-hardlinks", str(ROOT), str(dest))
+    run(ROOT, "git", "clone", "--quiet", "--no-hardlinks", str(ROOT), str(dest))
     for project in projects(dest) if every_project else [dest]:
-        sh(project, "dvc", "remote", "add", "--local", "-d", REMOTE, url)
+        run(project, "dvc", "remote", "add", "--local", "-d", REMOTE, url)
     return dest
 
 
 def dirty(clone: Path) -> list[str]:
-    return sh(clone, "git", "status", "--porcelain").stdout.splitlines()
+    return run(clone, "git", "status", "--porcelain").stdout.splitlines()
 
 
 def repro_every_project(clone: Path, chosen: list[str] | None) -> list[dict]:
@@ -101,7 +92,7 @@ def repro_every_project(clone: Path, chosen: list[str] | None) -> list[dict]:
             continue
         name = project.relative_to(clone).as_posix()
         started = time.perf_counter()
-        done = sh(project, "dvc", "repro", "--pull", "--allow-missing", check=False)
+        done = run(project, "dvc", "repro", "--pull", "--allow-missing", check=False)
         rows.append({"project": name, "exit": done.returncode, "ran": list(ran_stages(done.stdout)),
                      "seconds": round(time.perf_counter() - started, 1)})  # fmt: skip
         say(f"  {name}: exit {done.returncode}, {len(rows[-1]['ran'])} stages ran, "
@@ -178,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
             edit_knob(clone / "params.yaml", key, value)
             expected = depending_stages(clone, key) | {"check_params"}
             started = time.perf_counter()
-            done = sh(clone, "dvc", "repro", "--pull", "--allow-missing", check=False)
+            done = run(clone, "dvc", "repro", "--pull", "--allow-missing", check=False)
             ran = set(ran_stages(done.stdout))
             report["knob"] = {
                 "knob": args.knob, "exit": done.returncode, "ran": sorted(ran),
@@ -195,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.suite_run:
             second = fresh_clone(Path(scratch) / "suite", url, every_project=False)
             started = time.perf_counter()
-            done = sh(second, "oodrl", "suite", "run", "--workers", "2", check=False)
+            done = run(second, "oodrl", "suite", "run", "--workers", "2", check=False)
             report["suite_run"] = {
                 "exit": done.returncode, "output": done.stdout[-3000:] + done.stderr[-3000:],
                 "dirty": dirty(second), "seconds": round(time.perf_counter() - started, 1),
