@@ -27,11 +27,11 @@ from typing import Any
 
 from oodrl import yamlio
 from oodrl.config import read_params_data
+from oodrl.layout import DETECTOR_PIPELINES
 from oodrl.pipeline import PARAMS_FILE, project_dirs
 from oodrl.testing.kernels import uncertified_detectors
 
 ROOT = Path(__file__).resolve().parents[1]
-DETECTOR_FILE = "detectors/{}/dvc.yaml"
 
 
 def at_rev(rev: str, path: Path) -> str | None:
@@ -69,7 +69,7 @@ def changed_detectors(path: Path, old: str, new: str, names: set[str]) -> tuple[
         found, unexplained = set(), 0
         for key_path in leaf_paths(load(old), load(new)):
             # A key may join a name with other words (metrics.json: `iqm.pyod_iforest`).
-            hit = {n for n in names if any(n in part.split(".") or n == part for part in key_path)}
+            hit = {n for n in names if any(n in part.split(".") for part in key_path)}
             found |= hit
             unexplained += not hit
         return found, unexplained
@@ -92,7 +92,8 @@ def main(argv: list[str] | None = None) -> int:
         params_file = project / PARAMS_FILE
         uncertified = set(uncertified_detectors(read_params_data(params_file))) if (
             params_file.is_file()) else set()  # fmt: skip
-        for lock in [project / "dvc.lock", *sorted(project.glob("detectors/*/dvc.lock"))]:
+        detector_locks = sorted(project.glob(f"{DETECTOR_PIPELINES}/*/dvc.lock"))
+        for lock in [project / "dvc.lock", *detector_locks]:
             if not lock.is_file():
                 continue
             before, after = outs(at_rev(args.rev, lock)), outs(lock.read_text())
@@ -100,16 +101,16 @@ def main(argv: list[str] | None = None) -> int:
                 if before.get(key) == after.get(key):
                     continue
                 stage, out = key
-                lock_dir = lock.parent.relative_to(project).as_posix()
-                owner = lock_dir.split("/")[1] if lock_dir.startswith("detectors/") else None
+                owner = lock.parent.name if lock in detector_locks else None
                 row = {"project": project.relative_to(ROOT).as_posix(), "stage": stage,
                        "output": out, "detectors": [], "unexplained": 0}  # fmt: skip
                 if owner is not None:
                     row["detectors"] = [owner]
                     row["unexplained"] = int(owner not in uncertified)
+                elif not out.startswith("reports/"):
+                    row["unexplained"], row["note"] = 1, "data of the certified protocol"
                 elif out.endswith(".png") or not (project / out).is_file():
-                    row["unexplained"] = 0 if out.startswith("reports/") else 1
-                    row["note"] = "a figure or directory: reported, not judged"
+                    row["note"] = "a figure or directory of reports/: reported, not judged"
                 else:
                     old = at_rev(args.rev, project / out)
                     if old is None:
