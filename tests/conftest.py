@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import functools
 import http.server
+import signal
 import threading
 from pathlib import Path
 
@@ -13,6 +14,17 @@ import pytest
 import yaml
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
+
+
+def pytest_configure(config):
+    """Children get the signal dispositions a terminal gives a command. Run under `nohup`, or as
+    a background job of a script, pytest inherits SIGHUP or SIGINT ignored, its children would
+    too, and oodrl rightly keeps an ignored signal ignored: every test sending one would fail. A
+    handler (not an ignore) is reset to the default by exec, so the tests stay immune to a
+    hangup while the commands they start are not."""
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(signum) is signal.SIG_IGN:
+            signal.signal(signum, lambda number, frame: None)
 
 
 @pytest.fixture(scope="session")
