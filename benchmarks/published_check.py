@@ -13,10 +13,13 @@
    `pipeline/cartpole`), `dvc repro --pull --allow-missing`: the stages it ran (a complete
    remote: none), its exit code and seconds; then `git status --porcelain` of the clone (clean).
 4. `--knob KEY=VALUE` (a dotted key of the root's params.yaml, e.g.
-   `detectors.kde_density.bandwidth=0.6`): the edit, then the root's `dvc repro --pull
-   --allow-missing` again: the stages it ran against the stages that depend on the knob (those
-   declaring the key or a parent of it in `params:`, and every stage downstream of them in
-   DVC's graph; check_params re-runs for any edit of params.yaml).
+   `detectors.kde_density.bandwidth=0.6`): the edit, then the root's `dvc repro --pull`: the
+   stages it ran against the stages that depend on the knob (those declaring the key or a parent
+   of it in `params:`, and every stage downstream of them in DVC's graph; check_params re-runs
+   for any edit of params.yaml). Not `--allow-missing` here: with it DVC skips an unchanged
+   stage whose outputs are missing instead of pulling them, and a stage that must run then
+   finds a directory several stages fill (`scores`, `data/impact`) absent, which `--pull` cannot
+   fetch as a whole (README, "Publishing a suite read-only").
 5. `--suite-run`: a second fresh clone, the HTTP remote as the root's default remote only, and
    `oodrl suite run --workers 2`: the stages its tasks ran (none) and `git status --porcelain`.
 
@@ -169,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
             edit_knob(clone / "params.yaml", key, value)
             expected = depending_stages(clone, key) | {"check_params"}
             started = time.perf_counter()
-            done = run(clone, "dvc", "repro", "--pull", "--allow-missing", check=False)
+            done = run(clone, "dvc", "repro", "--pull", check=False)
             ran = set(ran_stages(done.stdout))
             report["knob"] = {
                 "knob": args.knob, "exit": done.returncode, "ran": sorted(ran),

@@ -243,3 +243,21 @@ def test_dvc_repro_allow_missing_runs_a_stage_on_a_directory_it_never_pulled(
     dvc(fresh, "pull", "--allow-missing", "-q")
     done = dvc(fresh, "repro", "--pull")
     assert suite_run.ran_stages(done.stdout) == ()
+
+
+def test_after_an_edit_dvc_repro_pull_runs_only_the_changed_stage(published, serve, tmp_path):
+    """The README's way after an edit in a fresh clone: `dvc repro --pull` without
+    `--allow-missing` pulls every unchanged stage's outputs (impact@x, impact@y) before the
+    changed stage (tiers) reads them, and runs that stage alone; the remote stays as it was."""
+    lab, remote = published
+    served = _listing(remote)
+    clone = clone_with_remote(lab, tmp_path / "clone", serve(remote))
+    pipeline = clone / "dvc.yaml"
+    edited = "> reports/r.tmp && mv reports/r.tmp reports/results.yaml"  # the same output
+    pipeline.write_text(pipeline.read_text().replace("> reports/results.yaml", edited))
+    done = dvc(clone, "repro", "--pull")
+    assert suite_run.ran_stages(done.stdout) == ("tiers",)
+    assert (clone / "reports" / "results.yaml").read_bytes() == (
+        lab / "reports" / "results.yaml"
+    ).read_bytes()
+    assert _listing(remote) == served
