@@ -6,6 +6,7 @@ from __future__ import annotations
 import copy
 import functools
 import http.server
+import os
 import signal
 import threading
 from pathlib import Path
@@ -25,6 +26,14 @@ def pytest_configure(config):
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         if signal.getsignal(signum) is signal.SIG_IGN:
             signal.signal(signum, lambda number, frame: None)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _sb3_logs_in_pytests_own_folder(tmp_path_factory):
+    """Stable-Baselines3 makes an empty folder in the system's temporary directory for every
+    model it trains quietly (SB3-<date>, its logger's default); the tests train dozens. Their
+    commands inherit this, so the folders land under pytest's own temporary directory."""
+    os.environ["SB3_LOGDIR"] = str(tmp_path_factory.mktemp("sb3-logs"))
 
 
 @pytest.fixture(scope="session")
