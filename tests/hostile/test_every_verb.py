@@ -88,15 +88,8 @@ def test_a_signal_is_one_line_and_its_exit_code(sig, tmp_path, repo_root):
     started them. 600 episodes finished inside the 4 s wait on a faster machine: the command must
     outlast the wait by a wide margin, and the test says so if it did not."""
     policy = repo_root / "pipeline/cartpole/models/policy.pt"
-    args = [
-        "evaluate-policy",
-        "--env",
-        "CartPole-v1",
-        "--policy",
-        str(policy),
-        "--episodes",
-        "6000",
-    ]
+    args = ["evaluate-policy", "--env", "CartPole-v1", "--policy", str(policy),
+            "--episodes", "6000"]  # fmt: skip
     process = subprocess.Popen(
         [OODRL, *args], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
     )
