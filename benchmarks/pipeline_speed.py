@@ -51,9 +51,8 @@ from typing import Any
 for _variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
     os.environ.setdefault(_variable, "1")
 
-import yaml  # noqa: E402
 
-from oodrl.testing.pipeline import copy_project, repro, run  # noqa: E402
+from oodrl.testing.pipeline import copy_project, edit_params, repro, run  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SUITE = "pipeline/suite"
@@ -250,12 +249,6 @@ def dvc_index(repo: Path) -> tuple[float, int, int]:
             best = min(best, time.perf_counter() - start)
         files = {stage.dvcfile.relpath for stage in index.stages}
         return best, len(index.stages), len(files)
-
-
-def edit_params(repo: Path, edit) -> None:
-    params = yaml.safe_load((repo / "params.yaml").read_text())
-    edit(params)
-    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
 
 def knob_runs(repo: Path, env: dict | None = None) -> dict[str, tuple[float, int]]:

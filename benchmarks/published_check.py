@@ -41,7 +41,7 @@ from pathlib import Path
 
 from oodrl.pipeline import SUITE_DIR, pipeline_dirs
 from oodrl.suite_run import ran_stages
-from oodrl.testing.pipeline import run
+from oodrl.testing.pipeline import edit_params, run
 
 ROOT = Path(__file__).resolve().parents[1]
 REMOTE = "published"
@@ -125,20 +125,20 @@ def depending_stages(project: Path, key: str) -> set[str]:
         return {stage.addressing for stage in found}
 
 
-def edit_knob(params: Path, key: str, value: str) -> None:
-    from ruamel.yaml import YAML
+def edit_knob(project: Path, key: str, value: str) -> None:
+    """Set the dotted `key` of the project's params.yaml to `value` (read as YAML)."""
+    import yaml
 
-    yaml = YAML()
-    data = yaml.load(params.read_text())
-    *parents, leaf = key.split(".")
-    node = data
-    for part in parents:
-        node = node[part]
-    if leaf not in node:
-        raise SystemExit(f"error: {key} is not a key of {params}")
-    node[leaf] = yaml.load(value)
-    with params.open("w") as out:
-        yaml.dump(data, out)
+    def edit(params: dict) -> None:
+        *parents, leaf = key.split(".")
+        node = params
+        for part in parents:
+            node = node[part]
+        if leaf not in node:
+            raise SystemExit(f"error: {key} is not a key of {project / 'params.yaml'}")
+        node[leaf] = yaml.safe_load(value)
+
+    edit_params(project, edit)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -169,7 +169,7 @@ def main(argv: list[str] | None = None) -> int:
         failures += [f"git status after the restore: {line}" for line in report["dirty"]]
         if args.knob:
             key, _, value = args.knob.partition("=")
-            edit_knob(clone / "params.yaml", key, value)
+            edit_knob(clone, key, value)
             expected = depending_stages(clone, key) | {"check_params"}
             started = time.perf_counter()
             done = run(clone, "dvc", "repro", "--pull", check=False)

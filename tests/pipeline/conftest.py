@@ -9,7 +9,6 @@ import shutil
 from pathlib import Path
 
 import pytest
-import yaml
 
 from oodrl.layout import detector_stage
 from oodrl.testing.pipeline import TINY_TIERS, copy_project, repro
@@ -98,12 +97,6 @@ def repo(built_repo, tmp_path) -> Path:
     copy = tmp_path / "repo"
     shutil.copytree(built_repo, copy, symlinks=True)
     return copy
-
-
-def edit_params(repo: Path, edit) -> None:
-    params = yaml.safe_load((repo / "params.yaml").read_text())
-    edit(params)
-    (repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
 
 
 @pytest.fixture

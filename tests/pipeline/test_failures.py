@@ -9,10 +9,10 @@ import time
 
 import pytest
 import yaml
-from conftest import INJECTORS, detector_stages, edit_params
+from conftest import INJECTORS, detector_stages
 
 from oodrl.layout import detector_stage
-from oodrl.testing.pipeline import environment, repro, run
+from oodrl.testing.pipeline import edit_params, environment, repro, run
 
 pytestmark = pytest.mark.slow
 

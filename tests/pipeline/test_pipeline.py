@@ -10,13 +10,12 @@ from conftest import (
     DETECTORS,
     INJECTORS,
     detector_stages,
-    edit_params,
     injector_scoring,
     injector_stages,
 )
 
 from oodrl.layout import detector_pipeline, detector_stage
-from oodrl.testing.pipeline import TINY_TIERS, lock_hashes, repro, run
+from oodrl.testing.pipeline import TINY_TIERS, edit_params, lock_hashes, repro, run
 
 pytestmark = pytest.mark.slow
 

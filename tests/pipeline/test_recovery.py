@@ -9,14 +9,14 @@ import shlex
 from pathlib import Path
 
 import pytest
-from conftest import DETECTORS, INJECTORS, POLICY_FILES, edit_params
+from conftest import DETECTORS, INJECTORS, POLICY_FILES
 
 from oodrl.errors import OodrlError
 from oodrl.layout import detector_stage
 from oodrl.metrics.results import read_results_file
 from oodrl.stages.train import RETRAIN_COMMAND
 from oodrl.store import load_detector, read_trajectories, restore_hint
-from oodrl.testing.pipeline import repro, run
+from oodrl.testing.pipeline import edit_params, repro, run
 
 pytestmark = pytest.mark.slow
 

@@ -13,9 +13,9 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import DETECTORS, INJECTORS, detector_stages, edit_params, python_path
+from conftest import DETECTORS, INJECTORS, detector_stages, python_path
 
-from oodrl.testing.pipeline import environment, lock_hashes, repro, run
+from oodrl.testing.pipeline import edit_params, environment, lock_hashes, repro, run
 from oodrl.warm import server_pid
 
 # Loaded by every Python process of the test (PYTHONPATH), the server included: at exit each

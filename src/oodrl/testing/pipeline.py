@@ -11,6 +11,7 @@ import os
 import shutil
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,16 @@ def run(
             f"{done.stdout[-4000:]}\n{done.stderr[-4000:]}"
         )
     return done
+
+
+def edit_params(
+    repo: Path, edit: Callable[[dict[str, Any]], None], name: str = "params.yaml"
+) -> None:
+    """Let `edit` change `repo`'s params file `name` in place (its keys keep their order)."""
+    path = repo / name
+    params = yaml.safe_load(path.read_text())
+    edit(params)
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
 
 
 def copy_project(source: Path, dest: Path, params: dict[str, Any] | None = None) -> Path:

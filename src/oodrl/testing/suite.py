@@ -17,9 +17,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-import yaml
-
-from oodrl.testing.pipeline import repro, run
+from oodrl.testing.pipeline import edit_params, repro, run
 
 SUITE = "pipeline/suite"
 SUITE_PARAMS = "pipeline/params.yaml"
@@ -62,23 +60,17 @@ def suite_copy(
         if name not in pipelines:
             shutil.rmtree(directory)
         elif edit_environment is not None:
-            _edit_yaml(directory / "params.yaml", edit_environment)
+            edit_params(directory, edit_environment)
     if edit is not None:
-        _edit_yaml(dest / "params.yaml", edit)
+        edit_params(dest, edit)
     if edit_suite is not None:
-        _edit_yaml(dest / SUITE_PARAMS, edit_suite)
+        edit_params(dest, edit_suite, SUITE_PARAMS)
     _cut_suite_list(dest / "src" / "oodrl" / "suite.py", pipelines)
     run(dest, "oodrl", "pipeline", "write", env=code_env(dest))
     run(dest, "git", "init", "-q")
     run(dest, "git", "add", "-A")
     run(dest, "git", "commit", "-q", "-m", f"the suite of {', '.join(pipelines)}")
     return dest
-
-
-def _edit_yaml(path: Path, edit: ParamsEdit) -> None:
-    data = yaml.safe_load(path.read_text())
-    edit(data)
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
 
 
 def _cut_suite_list(suite_module: Path, pipelines: list[str]) -> None:
