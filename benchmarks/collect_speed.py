@@ -38,7 +38,7 @@ from policy_step import _Clock, _timed_adapter, _TimedPolicy  # noqa: E402
 from oodrl.envs import ENVIRONMENTS  # noqa: E402
 from oodrl.envs import collect as new_collector  # noqa: E402
 from oodrl.policies.load import load_policy  # noqa: E402
-from oodrl.suite import PIPELINE_DIRS, policy_path  # noqa: E402
+from oodrl.suite.environments import PIPELINE_DIRS, policy_path  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The last commit whose collector stepped fixed blocks of 16 streams.

@@ -7,8 +7,8 @@
 Detector parameters are the class defaults, or with `--blocks` the params blocks of a YAML file
 (a block's `class:` may name a library's outlier class, SPEC §17); fit time is `fit` plus
 `calibrate` (on `--calibration` streams, default as many as `--fit`). Latency is
-measured by `oodrl.cost` (as the pipeline's render stage measures it into run_meta.yaml) over
-every step of `--score` streams fed one update at a time (flushes included).
+measured by `oodrl.metrics.cost` (as the pipeline's render stage measures it into run_meta.yaml)
+over every step of `--score` streams fed one update at a time (flushes included).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ def clean_streams(env_id: str, n: int, steps: int, first_seed: int = 20_000) -> 
     from oodrl.envs import ENVIRONMENTS
     from oodrl.envs.collect import collect
     from oodrl.policies.load import load_policy
-    from oodrl.suite import policy_path
+    from oodrl.suite.environments import policy_path
 
     adapter = ENVIRONMENTS.get(env_id)()
     policy = load_policy(policy_path(env_id, ROOT), "greedy", None, adapter.state_dim)
@@ -50,7 +50,7 @@ def build(name: str, blocks: dict):
 
 
 def detector_cost(detector, fit, calibration, scored) -> dict[str, float]:
-    from oodrl.cost import step_latency_us
+    from oodrl.metrics.cost import step_latency_us
 
     start = time.perf_counter()
     detector.fit(fit)

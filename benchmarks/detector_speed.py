@@ -21,7 +21,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # before numpy/torch, as in every
 
 
 def pipeline_sets(data: Path):
-    from oodrl.store import read_sweep, read_trajectories
+    from oodrl.io.store import read_sweep, read_trajectories
 
     id_set = read_trajectories(data / "id.zarr")
     split = id_set.attrs["split"]

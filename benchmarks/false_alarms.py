@@ -48,7 +48,7 @@ def with_rule(fitted, params: dict):
 def pipeline_sets(pipeline: Path) -> tuple[dict, list, list]:
     """A built pipeline's fitted detectors, held-out ID (calibration) and clean evaluation sets."""
     from oodrl.config import load_params
-    from oodrl.store import load_detector, read_trajectories
+    from oodrl.io.store import load_detector, read_trajectories
 
     params = load_params(pipeline / "params.yaml")
     id_set = read_trajectories(pipeline / "data/id.zarr")

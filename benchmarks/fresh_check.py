@@ -26,8 +26,8 @@ It rolls FRESH seeds and prints two markdown tables (`--json OUT` writes them to
 (b) Tiers: per fault and every tier its impact document reaches (a tier whose severity is
     "unreachable" is listed, not measured), the normalised return
     R̃ = (R(σ) − R_rand) / (R_clean − R_rand) at the committed severity σ, measured on M fresh
-    whole episodes with the fault live from step 0 (`oodrl.impact.faulty_returns`), R_clean and
-    R_rand on M fresh episodes each (`clean_returns`, `random_policy_returns`), the episode
+    whole episodes with the fault live from step 0 (`oodrl.protocol.impact.faulty_returns`), R_clean
+    and R_rand on M fresh episodes each (`clean_returns`, `random_policy_returns`), the episode
     length the impact document's `horizon`. Its 95% interval is the impact stage's percentile
     bootstrap (`metrics.n_boot` replicates; the policy's episodes resampled jointly over the
     clean run and the fault, the random policy's on their own). The verdict judges the interval
@@ -39,7 +39,7 @@ It rolls FRESH seeds and prints two markdown tables (`--json OUT` writes them to
     after severe), its own level] widened by 0.02, judged the same way and marked "(step)".
 
 Episodes are collected by the project's collector (`oodrl.envs.collect.collect`, the impact
-functions) and scored by the project's scoring code (`oodrl.scoring.score_set`), with the
+functions) and scored by the project's scoring code (`oodrl.protocol.scoring.score_set`), with the
 fitted detectors as the pipeline saved them; nothing here re-implements a detector.
 
 Seeds. With the pipeline's `seed` s and the offset S (default 3,000,000), the check uses
@@ -184,7 +184,7 @@ def check_seeds(params, offset: int, n_streams: int, n_episodes: int) -> list[tu
 # -- the pipeline's outputs ------------------------------------------------------------------------
 def _missing(path: str | Path, stage: str | None, what: str):
     from oodrl.errors import StoreError
-    from oodrl.store import restore_hint
+    from oodrl.io.store import restore_hint
 
     where = "" if Path.cwd() == _LAUNCH_DIR else f" (in {os.path.relpath(Path.cwd(), _LAUNCH_DIR)})"
     return StoreError(f"{path}: {what} is missing; {restore_hint(Path(path), stage)}{where}.")
@@ -192,8 +192,8 @@ def _missing(path: str | Path, stage: str | None, what: str):
 
 def fitted_detector_path(name: str) -> Path:
     """The fit stage's output in `detectors/<name>/dvc.yaml` (cwd: the pipeline)."""
-    from oodrl import yamlio
-    from oodrl.layout import detector_pipeline
+    from oodrl.io import yamlio
+    from oodrl.io.layout import detector_pipeline
 
     dvc_file = Path(detector_pipeline(name))
     if dvc_file.is_file():
@@ -207,8 +207,8 @@ def fitted_detector_path(name: str) -> Path:
 
 def committed_thresholds(detectors: list[str]) -> tuple[dict[str, float], float, dict]:
     """Each detector's per-stream threshold and α from reports/tier_results.yaml."""
-    from oodrl import yamlio
     from oodrl.errors import StoreError
+    from oodrl.io import yamlio
 
     if not Path(TIER_RESULTS).is_file():
         raise _missing(TIER_RESULTS, "tier_metrics", "the tier results file")
@@ -236,8 +236,8 @@ def committed_thresholds(detectors: list[str]) -> tuple[dict[str, float], float,
 def committed_tiers(faults: list[str]) -> tuple[dict[str, dict], int | None]:
     """fault -> {tier: {level, severity}} of each impact document (unreachable kept as such),
     and the documents' episode horizon."""
-    from oodrl.impact import LEVELS
-    from oodrl.tiers import IMPACT_DIR, impact_path, read_impact
+    from oodrl.protocol.impact import LEVELS
+    from oodrl.protocol.tiers import IMPACT_DIR, impact_path, read_impact
 
     tiers, horizon = {}, None
     for fault in faults:
@@ -257,7 +257,9 @@ def committed_tiers(faults: list[str]) -> tuple[dict[str, dict], int | None]:
 def tier_band(name: str, levels: dict[str, float], stepped: bool) -> tuple[float, float] | None:
     """The band a stepped fault's tier must fall in (see the module docstring); None for a
     continuous fault, whose band is its level ± TOLERANCE."""
-    from oodrl.impact import _tier_floor  # the band the impact stage verifies a step against
+    from oodrl.protocol.impact import (
+        _tier_floor,  # the band the impact stage verifies a step against
+    )
 
     if not stepped:
         return None
@@ -281,11 +283,11 @@ def false_alarms(params, detectors, thresholds, alpha, seeds: range, workers: in
     """Per detector, the fresh clean streams' false-alarm rate at its committed threshold."""
     from oodrl.envs import ENVIRONMENTS
     from oodrl.envs.collect import collect
-    from oodrl.layout import detector_stage
+    from oodrl.io.layout import detector_stage
+    from oodrl.io.store import load_detector
     from oodrl.metrics.operating import achieved_false_alarm_rate
     from oodrl.policies.load import load_policy
-    from oodrl.scoring import score_set
-    from oodrl.store import load_detector
+    from oodrl.protocol.scoring import score_set
 
     T = params.env.T  # noqa: N806
     adapter = ENVIRONMENTS.get(params.env.id)()
@@ -320,7 +322,7 @@ def false_alarms(params, detectors, thresholds, alpha, seeds: range, workers: in
 def bootstrap_normalised(faulty, clean, random, n_boot: int, ci: float, seed: int):
     """The impact stage's percentile bootstrap of R̃: π's episodes resampled jointly over the
     clean run and the fault (common seeds), the random policy's on their own."""
-    from oodrl.impact import _normalised
+    from oodrl.protocol.impact import _normalised
 
     rng = np.random.default_rng(seed)
     policy_index = rng.integers(0, clean.size, size=(n_boot, clean.size))
@@ -338,7 +340,8 @@ def bootstrap_normalised(faulty, clean, random, n_boot: int, ci: float, seed: in
 def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, workers: int):
     """R_clean, R_rand and, per reachable (fault, tier), R̃ at the committed severity."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.impact import (
+    from oodrl.policies.load import load_policy
+    from oodrl.protocol.impact import (
         UNREACHABLE,
         _normalised,
         clean_returns,
@@ -347,7 +350,6 @@ def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, 
         live_injectors,
         random_policy_returns,
     )
-    from oodrl.policies.load import load_policy
 
     adapter = ENVIRONMENTS.get(params.env.id)()
     policy = load_policy(Path(POLICY), mode=params.policy.mode)
@@ -528,7 +530,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         for name in detectors:
             path = fitted_detector_path(name)
             if not path.is_file():
-                from oodrl.layout import detector_stage
+                from oodrl.io.layout import detector_stage
 
                 raise _missing(path, detector_stage(name, "fit"), "the fitted detector")
     if args.episodes:

@@ -28,9 +28,9 @@ import numpy as np  # noqa: E402
 from oodrl.config import POLICY_SEED_OFFSET  # noqa: E402
 from oodrl.envs import ENVIRONMENTS  # noqa: E402
 from oodrl.envs.collect import collect  # noqa: E402
-from oodrl.impact import episode_limit, first_episode_returns  # noqa: E402
 from oodrl.policies.load import load_policy  # noqa: E402
-from oodrl.suite import PIPELINE_DIRS, policy_path  # noqa: E402
+from oodrl.protocol.impact import episode_limit, first_episode_returns  # noqa: E402
+from oodrl.suite.environments import PIPELINE_DIRS, policy_path  # noqa: E402
 
 
 def _timed(workers: int, *args, **kwargs) -> tuple[float, object]:

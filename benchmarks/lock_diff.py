@@ -25,10 +25,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from oodrl import yamlio
 from oodrl.config import read_params_data
-from oodrl.layout import DETECTOR_PIPELINES
-from oodrl.pipeline import PARAMS_FILE, project_dirs
+from oodrl.io import yamlio
+from oodrl.io.layout import DETECTOR_PIPELINES
+from oodrl.suite.pipeline import PARAMS_FILE, project_dirs
 from oodrl.testing.kernels import uncertified_detectors
 
 ROOT = Path(__file__).resolve().parents[1]

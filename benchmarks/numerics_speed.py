@@ -52,7 +52,7 @@ injector = "gaussian_state_noise"
 
 
 def score_sets():
-    from oodrl.store import read_sweep, read_trajectories
+    from oodrl.io.store import read_sweep, read_trajectories
 
     headline = read_trajectories(root / f"data/ood/{injector}.zarr", stage="benchmark")
     sweep = read_sweep(root / f"data/sweep/{injector}.zarr", stage="benchmark")
@@ -60,7 +60,7 @@ def score_sets():
 
 
 def fit_set():
-    from oodrl.store import read_trajectories
+    from oodrl.io.store import read_trajectories
 
     ids = read_trajectories(root / "data/id.zarr", stage="benchmark")
     return ids.subset(ids.attrs["split"]["fit"]).trajectories()
@@ -68,7 +68,7 @@ def fit_set():
 
 def run():
     if workload.endswith("_score"):
-        from oodrl.store import load_detector
+        from oodrl.io.store import load_detector
 
         name = {"kde": "kde_density", "time_series": "time_series_features", "pedm": "pedm",
                 "ensemble": "ensemble_disagreement"}[workload[: -len("_score")]]

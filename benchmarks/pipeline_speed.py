@@ -113,13 +113,14 @@ def simulation_floor(pipeline: Path) -> Floor:
     headline and sweep sets, the impact curves (SPEC §15: the clean and random-policy returns
     once, each fault over its grid; their whole episodes are timed and counted in the simulated
     steps, not in the sets' steps) and each fault's tier sets."""
-    from oodrl import protocol, yamlio
     from oodrl.config import load_params
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.impact import calibrate_impact, live_injectors
+    from oodrl.io import yamlio
+    from oodrl.io.store import write_trajectories
     from oodrl.policies.load import load_policy
-    from oodrl.store import write_trajectories
-    from oodrl.tiers import read_tiers, tier_sets
+    from oodrl.protocol import streams
+    from oodrl.protocol.impact import calibrate_impact, live_injectors
+    from oodrl.protocol.tiers import read_tiers, tier_sets
 
     params = load_params(pipeline / "params.yaml")
     policy = pipeline / "models" / "policy.pt"
@@ -127,8 +128,8 @@ def simulation_floor(pipeline: Path) -> Floor:
     online = [n for n in faults if params.injector_classes[n].mode == "online"]
     timer, count = _Timer(), _StepCount()
     with timer, count:
-        sets = [protocol.id_set(params, policy), protocol.eval_set(params, policy)]
-        sets += [protocol.heldout_set(params, which, policy) for which in protocol.HELDOUT_SETS]
+        sets = [streams.id_set(params, policy), streams.eval_set(params, policy)]
+        sets += [streams.heldout_set(params, which, policy) for which in streams.HELDOUT_SETS]
     with tempfile.TemporaryDirectory() as tmp:
         id_path, eval_path = Path(tmp) / "id.zarr", Path(tmp) / "eval.zarr"
         write_trajectories(id_path, sets[0])  # live faults' reference statistics; not timed
@@ -136,7 +137,7 @@ def simulation_floor(pipeline: Path) -> Floor:
         with timer, count:
             for name in online:
                 severities = [params.injector_severity(name), *params.anomaly.sweep]
-                sets += protocol.perturbed_sets(params, name, severities, policy, eval_path)
+                sets += streams.perturbed_sets(params, name, severities, policy, eval_path)
             document = calibrate_impact(
                 ENVIRONMENTS.get(params.env.id)(),
                 load_policy(policy, mode=params.policy.mode),
@@ -288,7 +289,7 @@ def knob_runs(repo: Path, env: dict | None = None) -> dict[str, tuple[float, int
 
 
 def main() -> None:
-    from oodrl.suite_run import suite_pipelines
+    from oodrl.suite.run import suite_pipelines
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     every = suite_pipelines(ROOT)

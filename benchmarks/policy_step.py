@@ -33,7 +33,7 @@ from oodrl import numerics
 from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import collect
 from oodrl.policies.load import load_policy
-from oodrl.suite import PIPELINE_DIRS, policy_path
+from oodrl.suite.environments import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -19,8 +19,8 @@ from oodrl.config import load_params
 from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import collect
 from oodrl.policies.load import load_policy
-from oodrl.protocol import eval_seeds
-from oodrl.suite import PIPELINE_DIRS, policy_path
+from oodrl.protocol.streams import eval_seeds
+from oodrl.suite.environments import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -39,8 +39,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from oodrl.pipeline import SUITE_DIR, pipeline_dirs
-from oodrl.suite_run import ran_stages
+from oodrl.suite.pipeline import SUITE_DIR, pipeline_dirs
+from oodrl.suite.run import ran_stages
 from oodrl.testing.pipeline import edit_params, run
 
 ROOT = Path(__file__).resolve().parents[1]

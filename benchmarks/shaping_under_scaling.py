@@ -18,10 +18,10 @@ from oodrl.core.injector import Fault
 from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import collect
 from oodrl.envs.lunar_lander import _shaping
-from oodrl.impact import first_episode_returns
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.apply import injector_rng
 from oodrl.policies.load import load_policy
+from oodrl.protocol.impact import first_episode_returns
 
 
 class Ledger(Fault):

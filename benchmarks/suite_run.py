@@ -32,7 +32,7 @@ from pathlib import Path
 import yaml
 
 from oodrl.config import EXTENDS_KEY, merge_params
-from oodrl.suite_run import run_suite
+from oodrl.suite.run import run_suite
 from oodrl.testing.pipeline import run
 from oodrl.testing.suite import SUITE, head_commit, locks, serial_build, suite_copy
 
@@ -86,7 +86,7 @@ def on_local_ray_cluster(repo: Path, nodes: int, remote: Path) -> tuple[float, o
 
 
 def main() -> None:
-    from oodrl.suite_run import suite_pipelines
+    from oodrl.suite.run import suite_pipelines
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     every = suite_pipelines(ROOT)

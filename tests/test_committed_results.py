@@ -10,7 +10,7 @@ from pathlib import Path
 
 import yaml
 
-from oodrl.pipeline import pipeline_dirs
+from oodrl.suite.pipeline import pipeline_dirs
 
 
 def _tracked(repo_root: Path) -> set[str]:

@@ -147,7 +147,7 @@ BAD = [
 
 def _checked(data: dict):
     """What `oodrl check-params` runs: loading, then the checks beyond it, file-prefixed."""
-    from oodrl.params_check import check_completely
+    from oodrl.suite.params_check import check_completely
 
     params = parse_params(data, "params.yaml")
     try:
@@ -170,7 +170,7 @@ def test_bad_params_are_one_line_errors(default_params, case, edit, message):
 
 
 def test_a_target_action_the_environment_lacks_is_refused_by_check_completely(default_params):
-    from oodrl.params_check import check_completely
+    from oodrl.suite.params_check import check_completely
 
     default_params["anomaly"]["injectors"]["action_conditioned_dynamics"]["target_action"] = 4
     params = parse_params(default_params, "params.yaml")  # stages validate without gymnasium

@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from oodrl.cost import detector_costs, stream_latencies_ns, timed_streams
 from oodrl.detectors import DETECTORS
-from oodrl.store import save_detector
+from oodrl.io.store import save_detector
+from oodrl.metrics.cost import detector_costs, stream_latencies_ns, timed_streams
 
 NAMES = ["cusum", "mahalanobis_distance", "lyapunov_divergence"]  # lyapunov: latency 5, flushes
 
@@ -41,7 +41,7 @@ def test_every_detector_gets_its_size_and_latency(fitted, heuristic_clean):
 
 
 def test_latency_is_one_figure_per_streamed_step(fitted, heuristic_clean):
-    from oodrl.store import load_detector
+    from oodrl.io.store import load_detector
 
     clean = heuristic_clean.trajectories()[5:7]
     detector = load_detector(fitted["lyapunov_divergence"], stage="fit")

@@ -4,10 +4,11 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from oodrl import yamlio
 from oodrl.core.adapter import EnvironmentAdapter, SimulatorHandle
 from oodrl.errors import ContractError
-from oodrl.impact import (
+from oodrl.injectors.online import DynamicsScaling
+from oodrl.io import yamlio
+from oodrl.protocol.impact import (
     AT_MOST,
     BEYOND_RANGE,
     LEVELS,
@@ -18,7 +19,6 @@ from oodrl.impact import (
     impact_text,
     minimum_detectable_impact,
 )
-from oodrl.injectors.online import DynamicsScaling
 from oodrl.report.impact import impact_table, plot_impact_curves
 from oodrl.testing.pipeline import TINY_TIERS
 
@@ -249,7 +249,7 @@ def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
 
 
 def test_minimum_detectable_impacts_from_a_sweep_document(document):
-    from oodrl.impact import minimum_detectable_impacts, sweep_metric
+    from oodrl.protocol.impact import minimum_detectable_impacts, sweep_metric
 
     summary = lambda value: {"matched_auroc": {"mean": value}}  # noqa: E731
     sweep = {
@@ -303,12 +303,12 @@ def test_a_stepped_severe_tier_past_half_the_return_is_unreachable():
 
 
 def test_live_stepped_faults_declare_their_steps_and_each_midpoint_is_its_step():
-    from oodrl.impact import severity_steps, step_severities
     from oodrl.injectors.live_observation import (
         LiveCorrelationBreak,
         LiveGaussianStateNoise,
         LiveObservationDelay,
     )
+    from oodrl.protocol.impact import severity_steps, step_severities
 
     delay = LiveObservationDelay(max_delay=10)
     assert severity_steps(delay, ToyAdapter()) == 10

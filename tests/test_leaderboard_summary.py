@@ -10,7 +10,7 @@ from pathlib import Path
 
 from report.test_leaderboard_report import write_results
 
-from oodrl import yamlio
+from oodrl.io import yamlio
 from oodrl.stages.leaderboard import run_leaderboard
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "leaderboard_summary.py"

@@ -19,10 +19,10 @@ from oodrl.detectors import DETECTORS
 from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import collect
 from oodrl.errors import NotFittedError
+from oodrl.io.store import save_detector
 from oodrl.monitor import FaultInjection, OodMonitor, live_fault, run_monitor
 from oodrl.policies.load import load_policy
-from oodrl.store import save_detector
-from oodrl.suite import policy_path
+from oodrl.suite.environments import policy_path
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -270,7 +270,7 @@ def test_the_readme_monitor_cell_is_the_committed_result():
     results = ROOT / "reports" / "tier_results.yaml"
     if not results.is_file():
         pytest.skip("reports/tier_results.yaml is not built here (run `dvc repro`)")
-    from oodrl import yamlio
+    from oodrl.io import yamlio
 
     args, (rate, low, high) = _readme_demo()
     detector, fault = _option(args, "--detector"), _option(args, "--fault")

@@ -20,7 +20,7 @@ from typer.testing import CliRunner
 
 from oodrl.cli import app
 from oodrl.config import read_params_data
-from oodrl.new import new_pipeline
+from oodrl.suite.new import new_pipeline
 from oodrl.testing.pipeline import TINY_TIERS, copy_project, run
 
 SECTION = "Benchmark your own agent"

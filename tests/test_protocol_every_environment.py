@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from oodrl import yamlio
 from oodrl.config import merge_params, parse_params, read_params_data
+from oodrl.io import yamlio
 from oodrl.metrics.results import compute_results
 from oodrl.stages import collect, fit, score
-from oodrl.suite import PIPELINE_DIRS, policy_path
+from oodrl.suite.environments import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[1]
 CI_PARAMS = read_params_data(ROOT / "ci" / "params.yaml")

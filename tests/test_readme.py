@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 from oodrl.config import read_params_data
-from oodrl.layout import detector_pipeline, detector_stage
+from oodrl.io.layout import detector_pipeline, detector_stage
 from oodrl.testing.pipeline import copy_project, lock_hashes, run
 
 README = Path(__file__).resolve().parents[1] / "README.md"

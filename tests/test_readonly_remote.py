@@ -22,9 +22,9 @@ import pytest
 from tiny_suite import assert_checking_line_then_the_error, dvc, dvc_project, git
 from typer.testing import CliRunner
 
-from oodrl import suite_run
 from oodrl.cli import app
-from oodrl.suite_run import SuiteRunError, run_suite
+from oodrl.suite import run as suite_run
+from oodrl.suite.run import SuiteRunError, run_suite
 
 pytestmark = pytest.mark.slow
 

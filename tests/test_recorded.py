@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 from oodrl.cli import app
 from oodrl.config import load_params, read_params_data
 from oodrl.errors import ConfigError
-from oodrl.new import new_pipeline
+from oodrl.suite.new import new_pipeline
 from oodrl.testing.pipeline import copy_project, run
 
 SECTION = "Recorded data: a Minari dataset"
@@ -150,7 +150,7 @@ def hopper():
 
 # -- streams ---------------------------------------------------------------------------------------
 def test_streams_are_the_episodes_in_order_run_on_into_the_next_and_cut_at_T(minari_env):
-    from oodrl.recorded import streams
+    from oodrl.protocol.recorded import streams
 
     dataset, T = hopper(), 40
     episodes = list(dataset.iterate_episodes())
@@ -183,7 +183,7 @@ def test_streams_are_the_episodes_in_order_run_on_into_the_next_and_cut_at_T(min
 def test_too_few_episodes_is_one_line(minari_env):
     import minari
 
-    from oodrl.recorded import streams
+    from oodrl.protocol.recorded import streams
 
     with pytest.raises(ConfigError, match=r"gives 0 streams of T=40 steps.*needs 2") as info:
         streams(minari.load_dataset("test/cartpole-short-v0"), 40, 2)
@@ -192,8 +192,8 @@ def test_too_few_episodes_is_one_line(minari_env):
 
 # -- oodrl new --dataset -------------------------------------------------------------------------
 def test_new_makes_a_post_hoc_pipeline_of_the_recording(minari_env, root):
-    from oodrl.pipeline import check_pipeline
-    from oodrl.recorded import files_sha256
+    from oodrl.protocol.recorded import files_sha256
+    from oodrl.suite.pipeline import check_pipeline
 
     made = new_pipeline(root, "hopper_medium", dataset=HOPPER, T=40)
     directory = made.directory
@@ -222,9 +222,9 @@ def test_new_makes_a_post_hoc_pipeline_of_the_recording(minari_env, root):
 
 
 def test_the_clean_sets_are_the_dataset_and_byte_identical_on_rerun(minari_env, root, tmp_path):
-    from oodrl.recorded import streams
+    from oodrl.io.store import read_trajectories
+    from oodrl.protocol.recorded import streams
     from oodrl.stages.recorded import import_clean_set
-    from oodrl.store import read_trajectories
 
     made = new_pipeline(root, "hopper_medium", dataset=HOPPER, T=40)
     params = load_params(made.directory / "params.yaml")
@@ -244,7 +244,7 @@ def test_the_clean_sets_are_the_dataset_and_byte_identical_on_rerun(minari_env, 
 
 
 def test_a_changed_dataset_is_refused_by_the_stage(minari_env, root, tmp_path):
-    from oodrl.recorded import clean_set
+    from oodrl.protocol.recorded import clean_set
 
     made = new_pipeline(root, "hopper_medium", dataset=HOPPER, T=40)
     params = load_params(made.directory / "params.yaml")
@@ -276,8 +276,8 @@ def test_bad_input_is_one_line_and_leaves_nothing(minari_env, root, arguments, m
 # -- the README's recipe, in a git + DVC copy of the project ------------------------------------
 @pytest.mark.slow
 def test_the_readme_recipe_benchmarks_recorded_data(minari_root, tmp_path, repo_root):
-    from oodrl.recorded import streams
-    from oodrl.store import read_trajectories
+    from oodrl.io.store import read_trajectories
+    from oodrl.protocol.recorded import streams
 
     params = tiny_params(repo_root)
     params["benchmark"]["injectors"] = INJECTORS

@@ -7,8 +7,8 @@ import yaml
 
 from oodrl.config import read_params_data
 from oodrl.errors import RegistryError
+from oodrl.io.store import load_detector, save_detector
 from oodrl.registry import Registry, add_project_dir_to_path, import_path
-from oodrl.store import load_detector, save_detector
 
 
 def test_lazy_registry_resolves_and_suggests():

@@ -14,7 +14,7 @@ from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
 from oodrl.cli import app
-from oodrl.suite_run import ran_stages
+from oodrl.suite.run import ran_stages
 from oodrl.testing.pipeline import repro, run
 
 pytestmark = pytest.mark.slow

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from oodrl.errors import StoreError
-from oodrl.store import (
+from oodrl.io.store import (
     read_scores,
     read_sweep,
     read_trajectories,

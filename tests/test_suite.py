@@ -11,7 +11,7 @@ from typer.testing import CliRunner
 
 from oodrl.cli import app
 from oodrl.config import read_params_data
-from oodrl.suite import PIPELINE_DIRS, POLICY_BARS, suite_runs
+from oodrl.suite.environments import PIPELINE_DIRS, POLICY_BARS, suite_runs
 
 ROOT = Path(__file__).resolve().parents[1]
 #: "environment/policy" → (environment id, its committed policy file).

@@ -13,9 +13,9 @@ import yaml
 from oodrl.config import read_params_data
 from oodrl.detectors import DETECTORS
 from oodrl.detectors.policy_view import PolicyDetector, QMargin
-from oodrl.layout import detector_pipeline
-from oodrl.pipeline import POLICY, Project, pipeline_dirs, policy_file, rendered_detector
+from oodrl.io.layout import detector_pipeline
 from oodrl.policies.load import load_policy
+from oodrl.suite.pipeline import POLICY, Project, pipeline_dirs, policy_file, rendered_detector
 
 POLICY_VIEW = ["q_margin", "q_entropy", "q_energy", "max_softmax"]
 EVERYWHERE = ["fqe_td", "riqn", "conformal_martingale", "deedee", "random_scores"]

@@ -16,7 +16,7 @@ from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
 from oodrl.cli import app
-from oodrl.suite_run import _unchanged_since_found_current, _up_to_date, run_suite
+from oodrl.suite.run import _unchanged_since_found_current, _up_to_date, run_suite
 from oodrl.testing.pipeline import run
 
 pytestmark = pytest.mark.slow

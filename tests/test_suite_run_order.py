@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from oodrl.suite_run import _longest_first
+from oodrl.suite.run import _longest_first
 
 
 def _built(root: Path, pipeline: str, seconds: float) -> None:

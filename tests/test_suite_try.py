@@ -133,7 +133,7 @@ def _stale_stages(project: Path) -> set[str]:
 @pytest.mark.slow
 def test_try_runs_only_the_detectors_stages_and_prints_its_ranks(built_suite):
     lines: list[str] = []
-    from oodrl.suite_try import try_detector
+    from oodrl.suite.try_detector import try_detector
 
     done = try_detector(
         built_suite, "hbos", "pyod.models.hbos:HBOS", "state", ["n_bins=10", "tol=0.5"],
@@ -180,7 +180,7 @@ def test_an_environment_listing_its_own_detectors_gets_the_new_one_appended(repo
     """The SAC environments list the suite's detectors without the policy-view ones (a list in
     params replaces the one it extends): `suite try` appends the new detector there, and leaves
     a params file without a list of its own untouched."""
-    from oodrl.suite_try import add_to_own_list
+    from oodrl.suite.try_detector import add_to_own_list
 
     own = repo_root / "pipeline" / "hopper" / "params.yaml"
     text = add_to_own_list(own.read_text(), "my_detector")
@@ -197,7 +197,7 @@ def test_an_environment_listing_its_own_detectors_gets_the_new_one_appended(repo
 def test_adding_a_detector_inserts_lines_and_changes_no_other(repo_root):
     """The suite's params keep every line as it was (flow-style blocks over several lines and
     their comments included): the new detector's list item and block are inserted lines."""
-    from oodrl.suite_try import add_to_params
+    from oodrl.suite.try_detector import add_to_params
 
     before = (repo_root / "pipeline" / "params.yaml").read_text()
     block = {"class": "pyod.models.hbos:HBOS", "features": "state", "n_bins": 10}
@@ -215,7 +215,7 @@ def test_adding_a_detector_inserts_lines_and_changes_no_other(repo_root):
 
 
 def test_a_flow_style_detector_list_is_refused_in_one_line():
-    from oodrl.suite_try import add_to_own_list
+    from oodrl.suite.try_detector import add_to_own_list
 
     with pytest.raises(ConfigError, match="empty or a flow-style list"):
         add_to_own_list("benchmark:\n  detectors: [a, b]\n", "x")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from oodrl.config import TierSearchConfig
-from oodrl.impact import LEVELS, Estimate, first_crossing, search_tier, searched_tiers
+from oodrl.protocol.impact import LEVELS, Estimate, first_crossing, search_tier, searched_tiers
 
 GRID = [0.1, 0.2, 0.4, 0.6, 0.8, 1.0]
 NOISE = 0.004  # the standard error of one probe's R̃
@@ -82,7 +82,7 @@ def test_an_exhausted_search_reports_the_closest_probe_and_verification_flags_a_
 
 
 def test_probes_and_the_verification_use_disjoint_fresh_seeds():
-    from oodrl.impact import reference_seeds, search_seeds, verify_seeds
+    from oodrl.protocol.impact import reference_seeds, search_seeds, verify_seeds
 
     search = TierSearchConfig()
     probes = [

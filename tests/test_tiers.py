@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from oodrl import yamlio
 from oodrl.errors import StoreError
+from oodrl.io import yamlio
 from oodrl.metrics.tiers import _per_stream_detections, detection_metric
-from oodrl.tiers import read_tiers
+from oodrl.protocol.tiers import read_tiers
 
 
 def _impact_document(tiers: dict) -> dict:

@@ -166,7 +166,7 @@ def check_params(
     stage deletes its outputs; its stamp never changes, so passing re-runs nothing, and each
     code stamp changes only with the code its stages execute."""
     from oodrl.config import load_params
-    from oodrl.params_check import check_completely
+    from oodrl.suite.params_check import check_completely
 
     params = load_params(path)
     try:
@@ -174,16 +174,16 @@ def check_params(
     except ConfigError as error:  # these checks name keys, not the file
         raise ConfigError(f"{path}: {error}") from None
     if pipeline is not None:
-        from oodrl import pipeline as pipelines
+        from oodrl.suite import pipeline as pipelines
 
         pipelines.check_pipeline(pipeline)
         if code is not None:
             pipelines.write_stamps(pipeline, path, code)
-    from oodrl.fileio import atomic_write_text
+    from oodrl.io.fileio import atomic_write_text
 
     if merged is not None:
-        from oodrl import yamlio
         from oodrl.config import read_params_data
+        from oodrl.io import yamlio
 
         atomic_write_text(merged, yamlio.dump(read_params_data(path)))
     if out is not None:
@@ -210,7 +210,7 @@ def evaluate_policy(
     """Roll out full episodes and print the mean ± std return."""
     from oodrl.policies.evaluate import evaluate_policy as evaluate
     from oodrl.policies.load import load_policy
-    from oodrl.suite import POLICY_BARS, policy_path
+    from oodrl.suite.environments import POLICY_BARS, policy_path
 
     if mode not in ("greedy", "noisy"):
         raise ConfigError(f"--mode must be 'greedy' or 'noisy'; got {mode!r}.")
@@ -402,7 +402,7 @@ def new(
 ) -> None:
     """Make pipeline/NAME for your agent in any Gymnasium environment, or for recorded data
     (SPEC §18)."""
-    from oodrl.new import new_pipeline, summary
+    from oodrl.suite.new import new_pipeline, summary
 
     made = new_pipeline(
         root, name, env, policy=policy, train=train, dataset=dataset, flatten=flatten,
@@ -464,7 +464,7 @@ def import_dataset(
 ) -> None:
     """Stages collect_id and collect_eval of a pipeline of recorded data (SPEC §18): the clean
     ID or evaluation streams, cut from a Minari dataset's episodes."""
-    from oodrl.recorded import SPLITS
+    from oodrl.protocol.recorded import SPLITS
     from oodrl.stages.recorded import import_clean_set
 
     if split not in SPLITS:
@@ -514,7 +514,7 @@ def collect_heldout(
     """Stages collect_calibration, collect_audit, collect_twins: held-out clean streams (SPEC
     §19) of the per-stream alarm rule (calibration), of its achieved false-alarm rate (audit,
     used for nothing else), and the clean twins of the tier cells' faulty streams (twins)."""
-    from oodrl.protocol import HELDOUT_SETS
+    from oodrl.protocol.streams import HELDOUT_SETS
     from oodrl.stages.collect import collect_heldout as run
 
     if which not in HELDOUT_SETS:
@@ -550,7 +550,7 @@ def fit(
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
     """Stage fit: fit and calibrate one detector."""
-    from oodrl.layout import detector_stage
+    from oodrl.io.layout import detector_stage
     from oodrl.stages.fit import fit_detector
 
     config = _load(params)
@@ -578,7 +578,7 @@ def score(
     --calibration, --audit, --twins, the held-out clean streams), or on one injector's sets
     (--injector with --ood, its headline set; --sweep, its sweep; --tiers, its tier streams);
     one store per set."""
-    from oodrl.layout import detector_stage
+    from oodrl.io.layout import detector_stage
     from oodrl.stages import score as stages
 
     config = _load(params)
@@ -695,7 +695,7 @@ RootOption = Annotated[Path, typer.Option("--root", help="the project root")]
 @command("write", group=pipeline_app)
 def pipeline_write(root: RootOption = Path(".")) -> None:
     """Write every pipeline's dvc.yaml (the root and pipeline/<env>/) from the template."""
-    from oodrl.pipeline import pipeline_dirs, write
+    from oodrl.suite.pipeline import pipeline_dirs, write
 
     changed = write(root)
     typer.echo(f"{len(pipeline_dirs(root))} pipelines, {len(changed)} rewritten: "
@@ -705,7 +705,7 @@ def pipeline_write(root: RootOption = Path(".")) -> None:
 @command("check", group=pipeline_app)
 def pipeline_check(root: RootOption = Path(".")) -> None:
     """Fail unless every pipeline's dvc.yaml is what `oodrl pipeline write` writes."""
-    from oodrl.pipeline import check, pipeline_dirs
+    from oodrl.suite.pipeline import check, pipeline_dirs
 
     check(root)
     typer.echo(f"{len(pipeline_dirs(root))} pipelines: every dvc.yaml is current")
@@ -721,7 +721,7 @@ def suite_run(
 ) -> None:
     """Build every pipeline of the suite in parallel, each in its own clone of HEAD, then the
     leaderboard; the checkout ends with the dvc.lock files a serial build writes."""
-    from oodrl.suite_run import run_suite
+    from oodrl.suite.run import run_suite
 
     run_suite(root, workers=workers, ray_address=ray, echo=typer.echo)
 
@@ -746,7 +746,7 @@ def suite_try(
 ) -> None:
     """Check a detector class against the contract, add it to the suite's params, run only its
     stages in every pipeline, reproduce the leaderboard and print its ranks (SPEC §21)."""
-    from oodrl.suite_try import try_detector
+    from oodrl.suite.try_detector import try_detector
 
     try_detector(root, name, class_path, features, options or (), workers=workers, echo=typer.echo)
 

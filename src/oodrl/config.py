@@ -2,10 +2,10 @@
 
 Loading validates everything a stage could read: structure and types (pydantic, unknown keys
 refused), the protocol's ranges, and every detector's and injector's own parameters (their
-declared constraints). `oodrl check-params` checks more (`oodrl.params_check.check_completely`):
-the seed ranges, the calibration counts, and every library detector fitted
-on dummy data. Any problem is one `ConfigError` line naming the key path and what is
-allowed; the CLI turns it into exit code 2 before anything is written. Stage commands load
+declared constraints). `oodrl check-params` checks more
+(`oodrl.suite.params_check.check_completely`): the seed ranges, the calibration counts, and every
+library detector fitted on dummy data. Any problem is one `ConfigError` line naming the key path and
+what is allowed; the CLI turns it into exit code 2 before anything is written. Stage commands load
 with `components=False` and validate the one component they build (check_params, the first
 stage, validated them all), so each imports only its own component's code.
 """
@@ -107,9 +107,9 @@ class MetricsConfig(_Section):
 
 
 class TierSearchConfig(_Section):
-    """The `tiers.search` block (SPEC §19, `oodrl.impact.search_tier`): each tier's severity is
-    probed, `probe_episodes` fresh whole episodes a probe, at most `max_probes` times, until R̃
-    at the probed severity is within `tolerance` of the tier's level; then re-measured on
+    """The `tiers.search` block (SPEC §19, `oodrl.protocol.impact.search_tier`): each tier's
+    severity is probed, `probe_episodes` fresh whole episodes a probe, at most `max_probes` times,
+    until R̃ at the probed severity is within `tolerance` of the tier's level; then re-measured on
     `verify_episodes` held-out episodes (the verification)."""
 
     tolerance: float = Field(0.015, gt=0, lt=1)
@@ -506,7 +506,7 @@ def merge_params(base: Any, override: Any, at: tuple[str, ...] = ()) -> Any:
 def _read_yaml(path: Path, named_by: str = "") -> Any:
     import yaml
 
-    from oodrl import yamlio
+    from oodrl.io import yamlio
 
     if not path.is_file():
         prefix = f"{named_by} " if named_by else ""

@@ -55,7 +55,7 @@ AlarmCallback = Callable[[StepScore], None]
 def as_detector(detector: BaseDetector | str | Path) -> BaseDetector:
     """A fitted, calibrated detector, or the one pickled at a path by `oodrl fit`."""
     if isinstance(detector, str | Path):
-        from oodrl.store import load_detector
+        from oodrl.io.store import load_detector
 
         if not Path(detector).is_file():
             raise ConfigError(f"--detector {detector}: no such file; pass a detector file written "
@@ -261,7 +261,7 @@ def _monitor_setup(
     from oodrl.detectors import DETECTORS
     from oodrl.envs import ENVIRONMENTS
     from oodrl.policies.load import load_policy
-    from oodrl.suite import policy_path
+    from oodrl.suite.environments import policy_path
 
     named = isinstance(detector, str) and not Path(detector).suffix
     if named and detector not in DETECTORS.names():

@@ -9,7 +9,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from typing import Any
 
-#: Pinned to one thread in every stage process (`oodrl.cli`) and suite task (`oodrl.suite_run`).
+#: Pinned to one thread in every stage process (`oodrl.cli`) and suite task (`oodrl.suite.run`).
 #: Stages parallelise explicitly (executor.workers processes); library thread pools would
 #: oversubscribe the cores (OpenMP threads spin-wait: 10x slowdowns seen on 2 cores) and let
 #: float results depend on the machine's core count.

@@ -18,7 +18,7 @@ from oodrl.errors import ConfigError
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.apply import collect_online
 from oodrl.policies.load import load_policy
-from oodrl.suite import PIPELINE_DIRS, policy_path
+from oodrl.suite.environments import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[2]
 LUNAR_LANDER = ROOT / "models" / "policy.pt"

@@ -328,7 +328,7 @@ def _results_document(uncertified: list[str]) -> dict:
 
 
 def test_results_and_leaderboard_mark_uncertified_detectors_per_row(tmp_path):
-    from oodrl import yamlio
+    from oodrl.io import yamlio
     from oodrl.metrics.results import Results
     from oodrl.report.tables import headline_table
     from oodrl.stages.leaderboard import run_leaderboard

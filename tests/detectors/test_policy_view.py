@@ -25,9 +25,9 @@ from oodrl.envs.lunar_lander import LunarLanderAdapter
 from oodrl.errors import ConfigError
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.apply import injector_rng
-from oodrl.pipeline import POLICY
 from oodrl.policies.load import load_policy
-from oodrl.suite import policy_path
+from oodrl.suite.environments import policy_path
+from oodrl.suite.pipeline import POLICY
 from oodrl.testing import linear_system_trajectories
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,5 +1,5 @@
-"""A stage's sets share their equal pre-onset scores (`oodrl.scoring.SharedPrefixes`): the same
-bits as scoring every stream in full, for every registered detector and for library detectors,
+"""A stage's sets share their equal pre-onset scores (`oodrl.protocol.scoring.SharedPrefixes`): the
+same bits as scoring every stream in full, for every registered detector and for library detectors,
 and fewer steps scored where the detector is row-independent."""
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from test_contract import NAMES, SPLITS, fitted
 from oodrl.core.detector import BaseDetector
 from oodrl.core.trajectory import Trajectory, TrajectorySet
 from oodrl.detectors import DETECTORS
-from oodrl.scoring import SharedPrefixes, first_difference, score_set
+from oodrl.protocol.scoring import SharedPrefixes, first_difference, score_set
 
 ONSET = 40
 

@@ -99,7 +99,7 @@ def test_a_policy_for_another_environment_is_refused():
 
 
 def test_continuous_sets_survive_a_store_round_trip(tmp_path):
-    from oodrl.store import read_trajectories, write_trajectories
+    from oodrl.io.store import read_trajectories, write_trajectories
 
     adapter = ENVIRONMENTS.get("Pendulum-v1")()
     tset = collect(adapter, LinearPolicy(adapter), [0, 1, 2], 25, attrs={"env_id": "Pendulum-v1"})
@@ -115,7 +115,7 @@ def test_continuous_sets_survive_a_store_round_trip(tmp_path):
 def test_first_episode_collection_stops_each_stream_at_its_first_end():
     """What impact calibration counts (the first episode's return) is the same with and without
     simulating the rest of the horizon; a stopped stream's later steps are zero."""
-    from oodrl.impact import first_episode_returns
+    from oodrl.protocol.impact import first_episode_returns
 
     adapter, policy = LunarLanderAdapter(), HeuristicPolicy()
     seeds = list(range(500000, 500006))

@@ -23,7 +23,7 @@ from oodrl.config import load_params, read_params_data
 from oodrl.envs import ENVIRONMENTS, GENERIC_ADAPTER
 from oodrl.envs.collect import collect
 from oodrl.errors import ContractError
-from oodrl.new import new_pipeline
+from oodrl.suite.new import new_pipeline
 
 DICT_ENV = "oodrl_test/DictPoint-v0"
 FLAT = f"FlattenObservation({DICT_ENV})"

@@ -16,7 +16,7 @@ from oodrl.envs.mujoco import HopperAdapter, MujocoHandle
 from oodrl.errors import ContractError, RegistryError
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.online import DynamicsScaling
-from oodrl.new import fault_support
+from oodrl.suite.new import fault_support
 
 #: id: (action kind, action size, observation size), as gymnasium documents them.
 OUTSIDE = {

@@ -18,7 +18,7 @@ from oodrl.envs.collect import Request, collect, collect_many
 from oodrl.injectors import INJECTORS
 from oodrl.injectors.apply import injector_rng
 from oodrl.policies.load import load_policy
-from oodrl.suite import PIPELINE_DIRS, policy_path
+from oodrl.suite.environments import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[2]
 FIELDS = ("states", "actions", "executed_actions", "rewards", "next_states", "dones")

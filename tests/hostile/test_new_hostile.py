@@ -22,8 +22,8 @@ import pytest
 from typer.testing import CliRunner
 
 from oodrl.cli import app
-from oodrl.new import new_pipeline
-from oodrl.pipeline import check_pipeline
+from oodrl.suite.new import new_pipeline
+from oodrl.suite.pipeline import check_pipeline
 from oodrl.testing.pipeline import environment, run
 
 #: Two CartPole controllers given as `module:function` policies (no training, fast to run).
@@ -141,7 +141,7 @@ INTERRUPTED = """
 import importlib, os, signal, sys
 from pathlib import Path
 
-from oodrl.new import new_pipeline
+from oodrl.suite.new import new_pipeline
 
 signum, where, root = int(sys.argv[1]), sys.argv[2], Path(sys.argv[3])
 module_name, _, function = where.rpartition(".")
@@ -166,7 +166,10 @@ finally:
 
 @pytest.mark.parametrize(
     ("signum", "where"),
-    [(signal.SIGTERM, "oodrl.pipeline.subrepo_files"), (signal.SIGHUP, "oodrl.new._check")],
+    [
+        (signal.SIGTERM, "oodrl.suite.pipeline.subrepo_files"),
+        (signal.SIGHUP, "oodrl.suite.new._check"),
+    ],
     ids=["SIGTERM-writing-dvc-files", "SIGHUP-checking-params"],
 )
 def test_a_signal_while_it_writes_removes_the_staging_folder(root, signum, where):
@@ -202,12 +205,12 @@ def new_pipeline_stopped(root: Path):
 def test_a_callers_own_signal_handler_is_kept_and_cleans_up_too(root, monkeypatch):
     """oodrl's CLI turns SIGTERM into KeyboardInterrupt: the staging folder goes just the same,
     and the caller's handler is in place after."""
-    import oodrl.pipeline
+    import oodrl.suite.pipeline
 
     def interrupted(*args, **kwargs):
         os.kill(os.getpid(), signal.SIGTERM)
 
-    monkeypatch.setattr(oodrl.pipeline, "subrepo_files", interrupted)
+    monkeypatch.setattr(oodrl.suite.pipeline, "subrepo_files", interrupted)
     assert new_pipeline_stopped(root) is stop
     assert list((root / "pipeline").iterdir()) == []
 

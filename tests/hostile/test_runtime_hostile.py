@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 from hostile_cli import OODRL, assert_one_line_error, oodrl, snapshot
 
-from oodrl.store import read_trajectories
+from oodrl.io.store import read_trajectories
 
 pytestmark = pytest.mark.slow
 
@@ -269,7 +269,7 @@ def test_a_signal_during_a_store_write_leaves_no_temporary_folder(workdir):
 # runs (the store is about to be written), and in an exit handler after it has finished.
 SIGNAL_IN = """
 import atexit, signal, sys, threading, time
-import oodrl.store
+import oodrl.io.store
 
 def trip():
     signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
@@ -279,7 +279,7 @@ class Tripping:
     def __del__(self):
         trip()
 
-original = oodrl.store.write_store
+original = oodrl.io.store.write_store
 
 def write_store(*args, **kwargs):
     Tripping()  # dropped at once: its __del__ runs
@@ -287,7 +287,7 @@ def write_store(*args, **kwargs):
     return original(*args, **kwargs)
 
 if sys.argv[1] == "del":
-    oodrl.store.write_store = write_store
+    oodrl.io.store.write_store = write_store
 else:
     atexit.register(trip)
 sys.argv = ["oodrl", "collect-eval", "--policy", "models/policy.pt", "--out", "new.zarr"]

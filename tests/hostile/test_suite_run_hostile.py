@@ -21,9 +21,9 @@ import pytest
 from tiny_suite import dvc, dvc_project, git
 from typer.testing import CliRunner
 
-from oodrl import suite_run
 from oodrl.cli import app
-from oodrl.suite_run import SuiteRunError, run_suite
+from oodrl.suite import run as suite_run
+from oodrl.suite.run import SuiteRunError, run_suite
 
 QUICK = "mkdir -p reports && echo built > reports/results.yaml"
 #: A stage that marks its start in its clone, then runs long enough to be interrupted.

@@ -116,7 +116,7 @@ def test_too_few_streams_is_one_config_error_naming_the_fewest_and_the_smallest_
 
 
 def test_check_params_refuses_too_few_streams_for_the_conditional_rule(tmp_path, default_params):
-    from oodrl.params_check import check_completely
+    from oodrl.suite.params_check import check_completely
 
     assert default_params["tiers"]["threshold_rule"] == "episode_max_conditional"
     default_params["tiers"]["n_calibration"] = 39

@@ -156,7 +156,7 @@ def test_probability_of_improvement_cis_agree_with_rliables(rly, numpy_global_se
 
 
 def committed_results() -> dict[str, Path]:
-    from oodrl.suite import PIPELINE_DIRS
+    from oodrl.suite.environments import PIPELINE_DIRS
 
     paths = {env: ROOT / d / "reports" / "results.yaml" for env, d in PIPELINE_DIRS.items()}
     skip_unless_checked_out(paths.values())

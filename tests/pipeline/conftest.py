@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from oodrl.layout import detector_stage
+from oodrl.io.layout import detector_stage
 from oodrl.testing.pipeline import TINY_TIERS, copy_project, repro
 
 DETECTORS = ["mahalanobis_distance", "kde_density"]
@@ -84,7 +84,8 @@ def built_repo(tmp_path_factory, repo_root, _default_params) -> Path:
     (trace / "sitecustomize.py").write_text(IMPORT_TRACE)
     repo = copy_project(repo_root, base / "repo", tiny_params(_default_params))
     policy = {name: (repo / name).read_bytes() for name in POLICY_FILES}
-    # Cold stage processes: a warm one (oodrl.warm) holds the modules its server preloaded too.
+    # Cold stage processes: a warm one (oodrl.warm) holds the modules its server preloaded
+    # too.
     trace_env = {"PYTHONPATH": python_path(trace), "OODRL_IMPORT_TRACE": str(trace)}
     repro(repo, env={**trace_env, "OODRL_WARM": "0"})
     # train_policy may run (its deps changed since dvc.lock was written) but never retrains.

@@ -16,8 +16,9 @@ from typer.testing import CliRunner
 import oodrl
 from oodrl.cli import app
 from oodrl.errors import ConfigError
-from oodrl.layout import detector_pipeline
-from oodrl.pipeline import (
+from oodrl.io.layout import detector_pipeline
+from oodrl.suite.environments import MORE_POLICIES, PIPELINE_DIRS, suite_runs
+from oodrl.suite.pipeline import (
     DETECTOR_TEMPLATE,
     FILLED_DIRS,
     FILLED_DIRS_IGNORED,
@@ -34,7 +35,6 @@ from oodrl.pipeline import (
     write,
     write_stamps,
 )
-from oodrl.suite import MORE_POLICIES, PIPELINE_DIRS, suite_runs
 from oodrl.testing.pipeline import run
 
 SOURCE_ROOT = Path(oodrl.__file__).resolve().parents[2]  # the checkout the stages import
@@ -253,7 +253,7 @@ def test_a_stage_lists_only_the_components_it_builds(repo_root):
     for verb in ("fit", "score"):
         files = _files(repo_root, verb, "kde_density")
         assert {"src/oodrl/detectors/kde.py", "src/oodrl/core/detector.py"} <= files
-        assert "src/oodrl/store.py" in files
+        assert "src/oodrl/io/store.py" in files
         assert not {"src/oodrl/detectors/pedm.py", "src/oodrl/detectors/cusum.py"} & files
     posthoc = _files(repo_root, "collect-ood", "observation_delay")
     assert {"src/oodrl/injectors/posthoc.py", "src/oodrl/envs/lunar_lander.py"} <= posthoc

@@ -13,7 +13,7 @@ import yaml
 from conftest import DETECTORS, INJECTORS, detector_stages, tiny_params
 from suite_repo import root_detectors_only
 
-from oodrl.store import read_trajectories
+from oodrl.io.store import read_trajectories
 from oodrl.testing.pipeline import copy_project, repro, run
 
 pytestmark = pytest.mark.slow

@@ -11,7 +11,7 @@ import pytest
 import yaml
 from conftest import INJECTORS, detector_stages
 
-from oodrl.layout import detector_stage
+from oodrl.io.layout import detector_stage
 from oodrl.testing.pipeline import edit_params, environment, repro, run
 
 pytestmark = pytest.mark.slow

@@ -6,7 +6,7 @@ from pathlib import Path
 
 from conftest import DETECTORS, INJECTORS
 
-from oodrl import yamlio
+from oodrl.io import yamlio
 from oodrl.stages.leaderboard import run_leaderboard
 
 

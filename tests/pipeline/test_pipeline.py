@@ -14,7 +14,7 @@ from conftest import (
     injector_stages,
 )
 
-from oodrl.layout import detector_pipeline, detector_stage
+from oodrl.io.layout import detector_pipeline, detector_stage
 from oodrl.testing.pipeline import TINY_TIERS, edit_params, lock_hashes, repro, run
 
 pytestmark = pytest.mark.slow
@@ -56,8 +56,8 @@ def test_full_pipeline_writes_every_output(built_repo):
 
 def _check_tier_results(repo) -> None:
     """SPEC §15: every detector at every reachable tier of every fault, at the per-stream rule."""
-    from oodrl.impact import UNREACHABLE
-    from oodrl.tiers import read_impact, read_tiers
+    from oodrl.protocol.impact import UNREACHABLE
+    from oodrl.protocol.tiers import read_impact, read_tiers
 
     document = yaml.safe_load((repo / "reports/tier_results.yaml").read_text())
     assert document["protocol_version"] == 3 and document["params_hash"].startswith("sha256:")

@@ -12,10 +12,10 @@ import pytest
 from conftest import DETECTORS, INJECTORS, POLICY_FILES
 
 from oodrl.errors import OodrlError
-from oodrl.layout import detector_stage
+from oodrl.io.layout import detector_stage
+from oodrl.io.store import load_detector, read_trajectories, restore_hint
 from oodrl.metrics.results import read_results_file
 from oodrl.stages.train import RETRAIN_COMMAND
-from oodrl.store import load_detector, read_trajectories, restore_hint
 from oodrl.testing.pipeline import edit_params, repro, run
 
 pytestmark = pytest.mark.slow

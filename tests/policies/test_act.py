@@ -14,7 +14,7 @@ from oodrl.envs import ENVIRONMENTS
 from oodrl.envs.collect import BLOCK_SIZE, collect
 from oodrl.policies.act import ArgmaxPolicy, policy_from_checkpoint
 from oodrl.policies.load import load_policy
-from oodrl.suite import PIPELINE_DIRS, policy_path
+from oodrl.suite.environments import PIPELINE_DIRS, policy_path
 
 ROOT = Path(__file__).resolve().parents[2]
 FIELDS = (

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from headless_chromium import chromium_path, file_url, load_offline
 
-from oodrl import yamlio
+from oodrl.io import yamlio
 from oodrl.metrics.operating import OperatingPoint
 from oodrl.report.leaderboard_page import curve_steps
 from oodrl.stages.leaderboard import run_leaderboard

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from oodrl import yamlio
 from oodrl.errors import StoreError
+from oodrl.io import yamlio
 from oodrl.report.leaderboard import read_inputs
 from oodrl.stages.leaderboard import run_leaderboard
 
@@ -222,7 +222,7 @@ def test_a_detector_that_runs_on_some_runs_is_ranked_where_it_runs(results, tmp_
 def test_the_stage_reads_headline_and_tier_results_of_every_environment(tmp_path: Path):
     from oodrl.config import parse_params
     from oodrl.stages.leaderboard import HEADLINE_RESULTS, TIER_RESULTS, results_files, run
-    from oodrl.suite import PIPELINE_DIRS, suite_runs
+    from oodrl.suite.environments import PIPELINE_DIRS, suite_runs
 
     strength = {"cusum": 0.9, "kde_density": 0.6, "pedm": 0.7}
     stamp = {"protocol_version": 2, "params_hash": "sha256:0"}

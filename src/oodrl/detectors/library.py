@@ -20,11 +20,11 @@ constructed object, in this order:
 oodrl's own keys (`features`, `window`, `standardize`, `threshold_rule`, `threshold_percentile`,
 `alpha`, `seed`) configure the wrapper; every other key of the block is a constructor argument of
 the library class, validated by constructing it (a scikit-learn estimator's value constraints
-too), and by `oodrl check-params` fitting it on dummy data (`oodrl.params_check`): some libraries
-check an argument only in fit. A key that is oodrl's and the library's too (HBOS's `alpha`) is
-oodrl's; where oodrl would not read it, it is refused. `seed` is passed on as the library's
-`random_state` (or `seed`, river) unless the block sets that argument itself. The library's own
-threshold (`contamination`) is ignored: alarms come from oodrl's calibration.
+too), and by `oodrl check-params` fitting it on dummy data (`oodrl.suite.params_check`): some
+libraries check an argument only in fit. A key that is oodrl's and the library's too (HBOS's
+`alpha`) is oodrl's; where oodrl would not read it, it is refused. `seed` is passed on as the
+library's `random_state` (or `seed`, river) unless the block sets that argument itself. The
+library's own threshold (`contamination`) is ignored: alarms come from oodrl's calibration.
 
 Feature views (`features`): "state", "state_action", "transition" (`oodrl.detectors.features`),
 or "window", the last `window` = L states stacked oldest first (L·d_s columns); the first L − 1
@@ -43,7 +43,7 @@ changes the fitted detector.
 
 So a row of the "state", "state_action" and "transition" views scores the same bits alone as in
 any batch: such a detector is `row_independent` (its scoring stage then scores a fault's
-pre-onset steps once, `oodrl.scoring`); a "window" row reads the L − 1 steps before it.
+pre-onset steps once, `oodrl.protocol.scoring`); a "window" row reads the L − 1 steps before it.
 
 Numba: a library that compiles its kernels with numba (PyOD's HBOS) compiles them in every
 process that first calls them, seconds per stage. Scoring turns on numba's own on-disk cache for

@@ -3,7 +3,7 @@
 `PolicyDetector` is the base of the detectors that read the agent: its `policy` parameter names
 the policy file, read once by `fit` (`oodrl.policies.load`) and kept in the fitted detector as
 its numpy network (`policy_`), so scoring and streaming need no file and no torch. The default,
-``models/policy.pt``, is the file every pipeline's commands name (`oodrl.pipeline.POLICY`),
+``models/policy.pt``, is the file every pipeline's commands name (`oodrl.suite.pipeline.POLICY`),
 relative to the pipeline's directory, where its stages run. The network is recomputed by the
 machine-independent policy code (`oodrl.policies.act`, SPEC §14) in greedy mode: the mean
 network of a NoisyNet, whatever `policy.mode` the streams were collected in (a noise sample
@@ -56,7 +56,7 @@ from oodrl.detectors.features import split_scores, stacked
 from oodrl.errors import ConfigError, PolicyError
 from oodrl.validation import Interval, IsNone, IsType
 
-#: The policy file of every pipeline, relative to its directory (`oodrl.pipeline.POLICY`, not
+#: The policy file of every pipeline, relative to its directory (`oodrl.suite.pipeline.POLICY`, not
 #: imported: a detector's module must stay light, and its imports are its stages' code deps).
 DEFAULT_POLICY = "models/policy.pt"
 

@@ -56,7 +56,7 @@ class EnvironmentRegistry(Registry):
         if ":" in name or name in self or self.path(name) != GENERIC_ADAPTER:
             return super().get(name)
         # By import path, as every adapter here: a stage's code stamp lists the generic module
-        # only where its environment uses it (oodrl.pipeline.component_modules).
+        # only where its environment uses it (oodrl.suite.pipeline.component_modules).
         return import_path(GENERIC_FACTORY)(name)
 
 

@@ -5,7 +5,7 @@ both need nothing but the Gymnasium API. Dynamics faults scale the increment of 
 the adapter reads and writes back; generically that exists for MuJoCo environments only
 (`qpos` then `qvel`, through `set_state`, as `oodrl.envs.mujoco`), and only where writing a
 state back gives that state and a twin that moves as the original does (`probe_state`). Every
-other environment gets a handle that refuses, naming why (`oodrl.new.fault_support` lists each
+other environment gets a handle that refuses, naming why (`oodrl.suite.new.fault_support` lists each
 fault left out with it).
 
 `generic_adapter(env_id)` is the adapter class of one id; `oodrl.envs.ENVIRONMENTS` hands it

@@ -170,7 +170,8 @@ class LiveObservationInjector(OnlineInjector):
     def severity_steps(self, adapter: EnvironmentAdapter) -> int | None:
         """How many distinct faults σ ∈ (0, 1] gives when the fault changes in whole steps (a
         count of coordinates, a delay in steps): step k is every σ in ((k − 1)/n, k/n]. None
-        when the fault changes continuously with σ (`oodrl.impact` reads tiers accordingly)."""
+        when the fault changes continuously with σ (`oodrl.protocol.impact` reads tiers
+        accordingly)."""
         return None
 
 

@@ -1,6 +1,6 @@
 """A run's results (SPEC §6, §7): one typed record per (detector, anomaly) headline cell and per
 null baseline, and the severity sweep, computed from the score stores of a pipeline's score
-stages (paths in `oodrl.layout`).
+stages (paths in `oodrl.io.layout`).
 
 `results.yaml` holds `{"records": [record, ...]}`, each record as `ResultRecord.as_dict` writes
 it; `sweep_results.yaml` holds `{"modes": {injector: mode}, "sweep": {injector: {severity:
@@ -16,20 +16,20 @@ from typing import Any, Literal
 
 import numpy as np
 
-from oodrl import yamlio
 from oodrl.config import Params
 from oodrl.core.spec import make_labels
 from oodrl.errors import StoreError
-from oodrl.layout import (
+from oodrl.io import yamlio
+from oodrl.io.layout import (
     CLEAN_GROUP,
     HEADLINE_GROUP,
     detector_stage,
     score_store,
     sweep_score_store,
 )
+from oodrl.io.store import read_scores, restore_hint, severity_key
 from oodrl.parallel import ordered_map
 from oodrl.progress import progress_bar
-from oodrl.store import read_scores, restore_hint, severity_key
 
 Summary = dict[str, dict[str, float | int]]
 
@@ -106,7 +106,7 @@ def nominal_false_alarms(params: Params) -> dict[str, dict[str, Any]]:
     are exchangeable; "episode_max": at most α of clean episodes (a conformal bound). The
     achieved rates are the null records' clean_alarm_rate and clean_episode_alarm.
     """
-    from oodrl.protocol import fit_calibration_split
+    from oodrl.protocol.streams import fit_calibration_split
 
     n = len(fit_calibration_split(params)[1])
     nominal = {}

@@ -1,5 +1,5 @@
 """Detection at impact tiers and a per-stream false-alarm budget (SPEC §15): the tier_metrics
-stage's results, `reports/tier_results.yaml` (the stages that feed it: `oodrl.tiers`).
+stage's results, `reports/tier_results.yaml` (the stages that feed it: `oodrl.protocol.tiers`).
 
 Per (detector, fault, tier) a record holds every metric of SPEC §6 against the matched clean
 twins of its `tiers.n_streams` faulty streams (per-episode matched AUROC kept for the
@@ -25,9 +25,9 @@ from typing import Any
 import numpy as np
 
 from oodrl.config import Params
-from oodrl.layout import CLEAN_GROUP, detector_stage, heldout_score_store, tier_score_store
-from oodrl.store import read_scores, severity_key
-from oodrl.tiers import impact_path, read_impact
+from oodrl.io.layout import CLEAN_GROUP, detector_stage, heldout_score_store, tier_score_store
+from oodrl.io.store import read_scores, severity_key
+from oodrl.protocol.tiers import impact_path, read_impact
 
 #: The level matched AUROC and detection_rate@K must reach for the minimum detectable impact.
 MDI_TARGET = 0.9
@@ -121,7 +121,7 @@ def _minimum_detectable_impact(
     records: list[dict], impacts: Mapping[str, dict], k: int
 ) -> dict[str, dict[str, dict[str, float | str | dict[str, float]]]]:
     """detector -> fault -> {criterion: the return loss 1 − R̃ at which it reaches 0.9}."""
-    from oodrl.impact import BEYOND_RANGE, impact_curve_points, minimum_detectable_impact
+    from oodrl.protocol.impact import BEYOND_RANGE, impact_curve_points, minimum_detectable_impact
 
     by_cell: dict[tuple[str, str], list[dict]] = {}
     for record in records:
@@ -212,8 +212,8 @@ def tier_tables(document: Mapping[str, Any], impact: Mapping[str, Any]) -> str:
     """Markdown: the tiers' severities per fault, then per tier the detection rate at α
     (with its CI), the median delay of the streams detected within K with their count ("—"
     below 5) and the matched AUROC of every (detector, fault)."""
-    from oodrl.impact import LEVELS
     from oodrl.metrics.operating import delay_text
+    from oodrl.protocol.impact import LEVELS
     from oodrl.report.impact import impact_table
 
     k, alpha = document["k"], document["alpha"]

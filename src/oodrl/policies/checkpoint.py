@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from oodrl.fileio import atomic_write_bytes, library_versions
+from oodrl.io.fileio import atomic_write_bytes, library_versions
 
 CHECKPOINT_FORMAT = "oodrl-policy"
 CHECKPOINT_VERSION = 1

@@ -378,7 +378,7 @@ def save_callable(
     import json
 
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.fileio import atomic_write_bytes
+    from oodrl.io.fileio import atomic_write_bytes
     from oodrl.policies.evaluate import evaluate_policy
     from oodrl.policies.load import CALLABLE_FORMAT, CallablePolicy
     from oodrl.policies.settings import ImportedConfig

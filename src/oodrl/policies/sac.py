@@ -202,7 +202,7 @@ class TrainingCheckpoint:
         return model
 
     def save(self, model: Any, progress: dict[str, Any]) -> None:
-        from oodrl.fileio import atomic_write_bytes
+        from oodrl.io.fileio import atomic_write_bytes
 
         step = progress["step"]
         self.directory.mkdir(parents=True, exist_ok=True)

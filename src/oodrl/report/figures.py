@@ -7,7 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from oodrl.config import Params
-from oodrl.layout import CLEAN_GROUP, HEADLINE_GROUP, score_store
+from oodrl.io.layout import CLEAN_GROUP, HEADLINE_GROUP, score_store
+from oodrl.io.store import read_scores
 from oodrl.report.plots import (
     ScoreTraces,
     plot_heatmap,
@@ -15,7 +16,6 @@ from oodrl.report.plots import (
     plot_severity_curves,
 )
 from oodrl.report.tables import record_injector
-from oodrl.store import read_scores
 
 
 def best_detectors(results: dict[str, Any]) -> dict[str, tuple[float, str]]:

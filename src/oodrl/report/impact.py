@@ -1,6 +1,7 @@
 """The impact tiers as a reader sees them (SPEC §15): a markdown table of every fault's tiers and
-a figure of the impact curves, drawn from an impact document (`oodrl.impact`). The tier_metrics
-stage draws them; the impact stages only measure, so their code stamps leave the report out."""
+a figure of the impact curves, drawn from an impact document (`oodrl.protocol.impact`). The
+tier_metrics stage draws them; the impact stages only measure, so their code stamps leave the report
+out."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from oodrl.impact import UNREACHABLE
+from oodrl.protocol.impact import UNREACHABLE
 
 
 def impact_table(document: Mapping[str, Any]) -> str:

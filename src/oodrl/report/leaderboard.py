@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from oodrl import yamlio
+from oodrl.io import yamlio
 from oodrl.metrics.leaderboard import (
     BENIGN_TIER,
     FIRST_POLICY,
@@ -55,7 +55,7 @@ GAP_FLOOR = 1e-4
 #: Results files (one or several) by (environment, policy), or by environment for policy "0".
 ResultsPaths = Mapping[tuple[str, str] | str, Path | Sequence[Path]]
 #: criterion → (environment, policy, fault) → detector → return loss, a bound
-#: `{at_most: loss}`, or "beyond range" (`oodrl.impact.minimum_detectable_impact`).
+#: `{at_most: loss}`, or "beyond range" (`oodrl.protocol.impact.minimum_detectable_impact`).
 MinimumDetectableImpact = dict[
     str, dict[tuple[str, str, str], dict[str, float | str | dict[str, float]]]
 ]
@@ -442,7 +442,7 @@ def _flag_lines(board: Board, detectors: Sequence[str]) -> list[str]:
 
 
 def _mdi_lines(mdi: MinimumDetectableImpact, alpha: float | None) -> list[str]:
-    from oodrl.impact import impact_text
+    from oodrl.protocol.impact import impact_text
 
     lines = []
     for criterion, rows in sorted(mdi.items()):

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from oodrl.config import Params
-from oodrl.fileio import library_versions
+from oodrl.io.fileio import library_versions
 
 
 def _git_commit() -> str:
@@ -49,7 +49,7 @@ def run_meta(
     """Provenance of this run: stage wall times from the `timing_records`, and each detector's
     `cost` (fit time, fitted size, µs per streamed step) beside its accuracy in results.yaml."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.protocol import eval_seeds, id_seeds
+    from oodrl.protocol.streams import eval_seeds, id_seeds
 
     timings = {record["stage"]: record["wall_s"] for record in records}
     return {
@@ -73,10 +73,10 @@ def write_run_meta(
     meta_path: Path,
 ) -> None:  # fmt: skip
     """run_meta.yaml: provenance, stage timings, and every benchmark detector's cost (§13)."""
-    from oodrl import yamlio
-    from oodrl.cost import detector_costs
-    from oodrl.fileio import atomic_write_text
-    from oodrl.store import read_trajectories
+    from oodrl.io import yamlio
+    from oodrl.io.fileio import atomic_write_text
+    from oodrl.io.store import read_trajectories
+    from oodrl.metrics.cost import detector_costs
 
     records = timing_records(timings_dir)
     models = {name: models_dir / f"{name}.pkl" for name in params.benchmark.detectors}

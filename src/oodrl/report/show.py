@@ -9,10 +9,10 @@ from typing import Any
 
 import yaml
 
-from oodrl import yamlio
 from oodrl.errors import ConfigError, StoreError
-from oodrl.pipeline import CHECK_STAGE
+from oodrl.io import yamlio
 from oodrl.report.tables import cost_table, render_tables, sweep_tables
+from oodrl.suite.pipeline import CHECK_STAGE
 
 RECORD_KEYS = frozenset({"kind", "detector", "injector", "mode", "severity", "metrics"})
 #: `injector` was called `anomaly` in results files written before the rename.

@@ -1,4 +1,4 @@
-"""What every stage shares: its timing record (fitted-detector files: `oodrl.store`)."""
+"""What every stage shares: its timing record (fitted-detector files: `oodrl.io.store`)."""
 
 from __future__ import annotations
 

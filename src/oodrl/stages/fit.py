@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from oodrl.config import Params
-from oodrl.store import read_trajectories, save_detector
+from oodrl.io.store import read_trajectories, save_detector
 
 
 def fit_detector(params: Params, detector_name: str, id_path: Path, out: Path) -> float:

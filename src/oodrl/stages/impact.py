@@ -1,18 +1,18 @@
 """The impact tier stages (SPEC §15, §19): `impact_reference` measures π's clean returns and
 the random policy's once; `impact` measures faults' impact curves and searches and verifies
-their tiers for one (environment, policy) as impact.yaml (`oodrl.impact`; the table and figure
-of the tiers are tier_metrics', `oodrl.report.impact`); `collect_tiers` collects a fault's tier
-streams."""
+their tiers for one (environment, policy) as impact.yaml (`oodrl.protocol.impact`; the table and
+figure of the tiers are tier_metrics', `oodrl.report.impact`); `collect_tiers` collects a fault's
+tier streams."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
 
-from oodrl import yamlio
 from oodrl.config import Params
 from oodrl.errors import ConfigError
-from oodrl.fileio import atomic_write_text
+from oodrl.io import yamlio
+from oodrl.io.fileio import atomic_write_text
 
 #: The default severity grid: 0.1 to 1.0 in steps of 0.1.
 DEFAULT_GRID = tuple(round(0.1 * i, 1) for i in range(1, 11))
@@ -23,10 +23,10 @@ def run_impact_reference(
 ) -> None:
     """Stage impact_reference: π's clean returns on every seed the impact stages use (the
     coarse curves', the tier search's, the verifications') and the random policy's, measured
-    once for every fault (`oodrl.impact.measure_reference`)."""
+    once for every fault (`oodrl.protocol.impact.measure_reference`)."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.impact import episode_limit, measure_reference
     from oodrl.policies.load import load_policy
+    from oodrl.protocol.impact import episode_limit, measure_reference
 
     adapter = ENVIRONMENTS.get(params.env.id)()
     policy = load_policy(policy_path, mode=params.policy.mode)
@@ -54,8 +54,8 @@ def run_impact(
     their tiers, and write the document; returns it. `reference_path`: impact_reference's
     document (measured here when not given)."""
     from oodrl.envs import ENVIRONMENTS
-    from oodrl.impact import Reference, calibrate_impact, live_injectors
     from oodrl.policies.load import load_policy
+    from oodrl.protocol.impact import Reference, calibrate_impact, live_injectors
 
     if not grid or any(not 0 < s <= 1 for s in grid) or list(grid) != sorted(set(grid)):
         raise ConfigError(
@@ -88,7 +88,7 @@ def run_impact(
 def read_reference(path: Path) -> dict:
     """impact_reference's document, or a one-line error saying how to restore it."""
     from oodrl.errors import StoreError
-    from oodrl.store import restore_hint
+    from oodrl.io.store import restore_hint
 
     if not Path(path).is_file():
         raise StoreError(f"{path}: missing; {restore_hint(path, 'impact_reference')}.")
@@ -106,8 +106,8 @@ def collect_tiers(
     """Stage collect_tiers: the evaluation streams with `fault` live at each tier its impact
     curve reaches (a store like the sweep's, one group per severity; its attributes map each
     tier to its severity and list the unreachable ones)."""
-    from oodrl.store import write_sweep
-    from oodrl.tiers import read_tiers, tier_sets
+    from oodrl.io.store import write_sweep
+    from oodrl.protocol.tiers import read_tiers, tier_sets
 
     tiers, unreachable = read_tiers(impact_path, fault)
     sets = tier_sets(params, fault, tiers, policy_path, id_path)

@@ -19,8 +19,8 @@ TIER_RESULTS = Path("reports/tier_results.yaml")
 
 def results_files(root: Path) -> dict[tuple[str, str], list[Path]]:
     """(environment, policy) → the results files the leaderboard reads: each run's pipeline
-    (`oodrl.suite.suite_runs`)."""
-    from oodrl.suite import suite_runs
+    (`oodrl.suite.environments.suite_runs`)."""
+    from oodrl.suite.environments import suite_runs
 
     files = {}
     for run, directory in suite_runs().items():
@@ -44,8 +44,8 @@ def run_leaderboard(
     leaderboard.json and leaderboard.html into out_dir."""
     import json
 
-    from oodrl import yamlio
-    from oodrl.fileio import atomic_write_text
+    from oodrl.io import yamlio
+    from oodrl.io.fileio import atomic_write_text
     from oodrl.metrics.leaderboard import build_board
     from oodrl.report import leaderboard as report
     from oodrl.report.leaderboard_page import page_data, page_html, page_json

@@ -8,9 +8,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from oodrl import yamlio
 from oodrl.config import Params
-from oodrl.fileio import atomic_write_text
+from oodrl.io import yamlio
+from oodrl.io.fileio import atomic_write_text
 
 
 def run_metrics(

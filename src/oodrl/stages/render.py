@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from oodrl.config import Params
-from oodrl.fileio import atomic_write_text
+from oodrl.io.fileio import atomic_write_text
 from oodrl.stages.common import TIMINGS_DIR
 
 

@@ -4,29 +4,29 @@ score@<injector>: its headline set, its sweep and its tier streams). One stage p
 injector rather than one per set: a stage process and DVC's bookkeeping cost more than scoring a
 set (SPEC §12). Each set is scored by a freshly loaded detector, as when every set had a process
 of its own; an injector's sets share the scores of their equal pre-onset steps
-(`oodrl.scoring.SharedPrefixes`), which are the same bits as scoring them again. What the score
-stores hold: `oodrl.scoring`; where: `oodrl.layout`."""
+(`oodrl.protocol.scoring.SharedPrefixes`), which are the same bits as scoring them again. What the
+score stores hold: `oodrl.protocol.scoring`; where: `oodrl.io.layout`."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
 
-from oodrl import scoring
-from oodrl.layout import (
+from oodrl.io.layout import (
     detector_stage,
     heldout_score_store,
     score_store,
     sweep_score_store,
     tier_score_store,
 )
-from oodrl.store import (
+from oodrl.io.store import (
     load_detector,
     read_sweep,
     read_tier_sets,
     read_trajectories,
     write_scores,
 )
+from oodrl.protocol import scoring
 
 
 def score_clean_sets(
@@ -34,7 +34,7 @@ def score_clean_sets(
     heldout: Mapping[str, Path | None],
 ) -> None:  # fmt: skip
     """Stage score_clean: the sets given of the clean evaluation set and the held-out clean
-    sets (`heldout`: set name -> store, `oodrl.protocol.HELDOUT_SETS`)."""
+    sets (`heldout`: set name -> store, `oodrl.protocol.streams.HELDOUT_SETS`)."""
     for path, stage, out in [
         (eval_path, "collect_eval", score_store(scores_dir, name)),
         *(

@@ -84,7 +84,7 @@ def copy_project(source: Path, dest: Path, params: dict[str, Any] | None = None)
         target.parent.mkdir(parents=True, exist_ok=True)
         shutil.copy2(source / name, target)
     if params is not None:
-        from oodrl.pipeline import write
+        from oodrl.suite.pipeline import write
 
         (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
         write(dest)  # other benchmark lists: other detectors' DVC files
@@ -106,7 +106,7 @@ def repro(repo: Path, *args: str, env: dict[str, str] | None = None) -> list[str
 
 def lock_hashes(repo: Path) -> dict[str, str]:
     """Output path -> md5 recorded in the root pipeline's locks (its content addresses)."""
-    from oodrl.layout import DETECTOR_PIPELINES
+    from oodrl.io.layout import DETECTOR_PIPELINES
 
     hashes = {}
     for path in [repo / "dvc.lock", *sorted((repo / DETECTOR_PIPELINES).glob("*/dvc.lock"))]:

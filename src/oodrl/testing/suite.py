@@ -2,8 +2,9 @@
 
 The copy holds one commit (git archive, so edits in the working tree stay behind), its own
 `git init` and commit, edited params, and only the chosen pipelines: the other environments'
-directories are dropped and `oodrl.suite.PIPELINE_DIRS` in the copy's sources lists the kept ones,
-so its leaderboard reads those alone. Stage commands must run the copy's code (`code_env`).
+directories are dropped and `oodrl.suite.environments.PIPELINE_DIRS` in the copy's sources lists the
+kept ones, so its leaderboard reads those alone. Stage commands must run the copy's code
+(`code_env`).
 """
 
 from __future__ import annotations

@@ -434,8 +434,8 @@ def write_stamps(pipeline_path: Path, params_path: Path, code_dir: Path) -> list
     """Write one code stamp per stage kind of the pipeline into `code_dir` (the pipeline's
     CODE_STAMPS, as the command runs in its directory); remove stale ones."""
     from oodrl.config import read_params_data
-    from oodrl.fileio import atomic_write_text
-    from oodrl.layout import detector_pipeline
+    from oodrl.io.fileio import atomic_write_text
+    from oodrl.io.layout import detector_pipeline
 
     project = Project.of_pipeline(pipeline_path)
     params = read_params_data(params_path)
@@ -594,7 +594,7 @@ def _add_policy_dep(
 
 def is_recorded(params: dict[str, Any]) -> bool:
     """Whether params are a pipeline of recorded data's (`oodrl new --dataset`, SPEC §18)."""
-    from oodrl.recorded import SOURCE
+    from oodrl.protocol.recorded import SOURCE
 
     train = (params.get("policy") or {}).get("train") or {}
     return train.get("source") == SOURCE
@@ -729,10 +729,10 @@ SUITE_DIR = Path(ENVIRONMENTS_DIR) / "suite"
 def rendered_suite(root: Path) -> str:
     """pipeline/suite/dvc.yaml: one stage reading every environment's results."""
     project = Project(root.resolve(), (root / SUITE_DIR).resolve())
-    from oodrl.suite import suite_runs
+    from oodrl.suite.environments import suite_runs
 
     # The suite's runs only, as the leaderboard reads them: a pipeline `oodrl new` made stays
-    # off the leaderboard unless it is added to oodrl.suite's PIPELINE_DIRS (SPEC §18).
+    # off the leaderboard unless it is added to oodrl.suite.environments's PIPELINE_DIRS (SPEC §18).
     suite = {(root / d).resolve() for d in suite_runs().values()}
     environments = [d for d in pipeline_dirs(root) if d.resolve() in suite]
     from oodrl.report.leaderboard_page import PAGE_TEMPLATE
@@ -780,7 +780,7 @@ def rendered_suite(root: Path) -> str:
 def pipeline_files(pipeline_dir: Path, root: Path) -> dict[Path, str]:
     """A pipeline's generated DVC files and their text: its dvc.yaml, then one per detector."""
     from oodrl.config import read_params_data
-    from oodrl.layout import detector_pipeline
+    from oodrl.io.layout import detector_pipeline
 
     detectors = read_params_data(pipeline_dir / PARAMS_FILE)["benchmark"]["detectors"]
     files = {pipeline_dir / "dvc.yaml": rendered(pipeline_dir, root)}
@@ -792,7 +792,7 @@ def pipeline_files(pipeline_dir: Path, root: Path) -> dict[Path, str]:
 
 def _stale_files(pipeline_dir: Path, files: Mapping[Path, str]) -> list[Path]:
     """Generated detector files of detectors no longer in the benchmark."""
-    from oodrl.layout import DETECTOR_PIPELINES
+    from oodrl.io.layout import DETECTOR_PIPELINES
 
     found = sorted((pipeline_dir / DETECTOR_PIPELINES).glob("*/dvc.yaml"))
     return [path for path in found if path not in files]
@@ -811,7 +811,7 @@ def project_dirs(root: Path) -> list[Path]:
 #: stage would run on inputs never pulled (SPEC §21).
 FILLED_DIRS = ("data/impact", "models/detectors", "scores")
 FILLED_DIRS_IGNORED = (
-    "# Directories several stages fill, ignored whole (oodrl.pipeline.FILLED_DIRS: why).\n"
+    "# Directories several stages fill, ignored whole (oodrl.suite.pipeline.FILLED_DIRS: why).\n"
     + "".join(f"/{directory}/\n" for directory in FILLED_DIRS)
 )
 

@@ -26,7 +26,7 @@ With a remote a task first pulls what the remote has (`dvc pull --allow-missing`
 `dvc repro --pull`. Not `dvc repro --pull --allow-missing`, DVC's own "fetch what is unchanged,
 run what changed": it skips, without pulling, a stage whose outputs are missing but otherwise
 current, and forgives a missing dep only when its path is absent. On a fresh clone that runs
-nothing (git ignores whole the directories several stages fill, `oodrl.pipeline.FILLED_DIRS`,
+nothing (git ignores whole the directories several stages fill, `oodrl.suite.pipeline.FILLED_DIRS`,
 so a clone has none of them), but once a stage reading such a directory must run (the root's
 `tier_metrics` reads `data/impact`, each `impact@<fault>` writes one file in it), `--pull`
 cannot fetch the directory, which is no stage's output. One `dvc pull` is also faster than
@@ -106,11 +106,12 @@ class Remote:
 def suite_pipelines(root: Path) -> list[str]:
     """The root's pipeline (the paper's default) and every run the suite's leaderboard reads (the
     pipelines whose results its generated dvc.yaml depends on), relative to the root ('.' is the
-    root's own). A pipeline `oodrl new` made, or a policy not yet in `oodrl.suite.MORE_POLICIES`,
-    is not the suite's: build it with `dvc repro` in its directory."""
+    root's own). A pipeline `oodrl new` made, or a policy not yet in
+    `oodrl.suite.environments.MORE_POLICIES`, is not the suite's: build it with `dvc repro` in its
+    directory."""
     import yaml
 
-    from oodrl.pipeline import SUITE_DIR
+    from oodrl.suite.pipeline import SUITE_DIR
 
     suite = root / SUITE_DIR / "dvc.yaml"
     if not suite.is_file():
@@ -368,8 +369,8 @@ def run_suite(
 def _build_suite(
     root: Path, workers: int, ray_address: str | None, echo: Callable[[str], None], start: float
 ) -> SuiteRun:
-    from oodrl.fileio import atomic_write_text
-    from oodrl.pipeline import SUITE_DIR
+    from oodrl.io.fileio import atomic_write_text
+    from oodrl.suite.pipeline import SUITE_DIR
 
     pipelines = suite_pipelines(root)
     projects = [*pipelines, SUITE_DIR.as_posix()]
@@ -462,7 +463,7 @@ def restore_project(
     checked out from the cache (pulled first from a writable remote): what `dvc repro` would
     leave, without DVC's per-stage run-cache lookups. `--force` replaces outputs as `dvc repro`
     does. The seconds it took."""
-    from oodrl.fileio import atomic_write_bytes
+    from oodrl.io.fileio import atomic_write_bytes
 
     began = time.perf_counter()
     project = root / built.pipeline

@@ -10,7 +10,7 @@
    pipeline write` does: in a scratch clone of HEAD first, where every run's params are then
    validated and the change is committed, so that the checkout is untouched until every
    pipeline has run.
-3. `oodrl.suite_run`'s tasks build that commit, each pipeline in its own clone, with DVC
+3. `oodrl.suite.run`'s tasks build that commit, each pipeline in its own clone, with DVC
    targets: the detector's DVC file (its fit and scoring stages) and the stages writing the
    results the leaderboard reads. DVC restores every other stage those depend on from the
    cache (or the remote) where its lock is current and builds what is missing.
@@ -115,7 +115,7 @@ def detector_block(class_path: str, features: str | None, options: Sequence[str]
 
 def suite_runs(root: Path) -> list[str]:
     """The pipelines the leaderboard reads (the root's own pipeline is not one of them)."""
-    from oodrl.suite_run import suite_pipelines
+    from oodrl.suite.run import suite_pipelines
 
     return [pipeline for pipeline in suite_pipelines(root) if pipeline != "."]
 
@@ -320,7 +320,7 @@ VALIDATE = """
 import sys
 from oodrl.config import load_params
 from oodrl.errors import ConfigError
-from oodrl.params_check import check_completely
+from oodrl.suite.params_check import check_completely
 
 name, runs, checked = sys.argv[1], sys.argv[2:], set()
 try:
@@ -350,8 +350,8 @@ def stage(root: Path, name: str, block: dict[str, Any], runs: Sequence[str], scr
     import sys
 
     from oodrl.config import read_params_data
-    from oodrl.layout import detector_pipeline
-    from oodrl.suite_run import SuiteRunError, _run, _spawn, task_environment
+    from oodrl.io.layout import detector_pipeline
+    from oodrl.suite.run import SuiteRunError, _run, _spawn, task_environment
 
     commit = _run(root, {}, "git", "rev-parse", "HEAD").stdout.strip()
     _run(scratch, {}, "git", "clone", "-q", "--no-checkout", str(root), "repo")
@@ -418,7 +418,7 @@ def try_detector(
     echo: Callable[[str], None] = print,
 ) -> TryRun:
     """Check, add and run detector `name` on every run of the suite; print its ranks."""
-    from oodrl.suite_run import _ending_processes_on_signals
+    from oodrl.suite.run import _ending_processes_on_signals
 
     root = root.resolve()
     if workers < 1:
@@ -433,8 +433,8 @@ def _try(root: Path, name: str, class_path: str, features: str | None,
          start: float) -> TryRun:  # fmt: skip
     from dataclasses import replace
 
-    from oodrl.pipeline import SUITE_DIR
-    from oodrl.suite_run import (
+    from oodrl.suite.pipeline import SUITE_DIR
+    from oodrl.suite.run import (
         _cache_dir,
         _check_remote,
         _dvc_config,
@@ -482,7 +482,7 @@ def _try(root: Path, name: str, class_path: str, features: str | None,
     tasks_seconds = time.perf_counter() - began
     echo(f"try: every run built in {tasks_seconds:.1f} s; writing {SUITE_PARAMS}, "
          f"{len(staged.files) - 1} DVC files and each run's results into the checkout")  # fmt: skip
-    from oodrl.fileio import atomic_write_bytes
+    from oodrl.io.fileio import atomic_write_bytes
 
     began = time.perf_counter()
     with _dvc_config(remote) as env:
@@ -516,7 +516,7 @@ def _try(root: Path, name: str, class_path: str, features: str | None,
 # -- 5. the ranks ------------------------------------------------------------------------------
 def committed_leaderboard(root: Path) -> dict | None:
     """The leaderboard's JSON as committed at HEAD, or None where HEAD has none."""
-    from oodrl.pipeline import SUITE_DIR
+    from oodrl.suite.pipeline import SUITE_DIR
 
     path = (SUITE_DIR / LEADERBOARD_JSON).as_posix()
     done = subprocess.run(["git", "show", f"HEAD:{path}"], cwd=root, capture_output=True,

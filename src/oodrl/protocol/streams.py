@@ -7,7 +7,7 @@ matched counterparts of the clean evaluation set's. The clean calibration stream
 per-stream alarm rule (SPEC §15) use `seed + tiers.calibration_seed_offset + j`, the audit
 streams (SPEC §19) `seed + tiers.audit_seed_offset + j`; the tier cells' streams and their clean
 twins are the first `tiers.n_streams` evaluation seeds; impact calibration has seed ranges of
-its own (`oodrl.impact`).
+its own (`oodrl.protocol.impact`).
 """
 
 from __future__ import annotations
@@ -23,8 +23,8 @@ from oodrl.core.injector import OnlineInjector
 from oodrl.core.policy import Policy
 from oodrl.core.trajectory import TrajectorySet
 from oodrl.envs import ENVIRONMENTS
+from oodrl.io.store import read_trajectories
 from oodrl.progress import progress_bar
-from oodrl.store import read_trajectories
 
 
 def id_seeds(params: Params) -> list[int]:

@@ -2,7 +2,7 @@
 
 Score stores hold, per group, `scores` (N, T) float64 and, for perturbed sets, the `labels`
 (N, T) bool they are judged against; the root attributes hold the detector's threshold, the
-detector and injector names, the mode and the AnomalySpec. Groups (paths in `oodrl.layout`):
+detector and injector names, the mode and the AnomalySpec. Groups (paths in `oodrl.io.layout`):
 `clean` in `<detector>/eval.zarr`; `headline` in `<detector>/<injector>.zarr`; one
 `severity_<σ>` per sweep severity in `<detector>/sweep/<injector>.zarr`.
 
@@ -24,8 +24,8 @@ import numpy as np
 
 from oodrl.core.trajectory import Trajectory, TrajectorySet
 from oodrl.errors import DetectorError
-from oodrl.layout import CLEAN_GROUP, HEADLINE_GROUP
-from oodrl.store import severity_key
+from oodrl.io.layout import CLEAN_GROUP, HEADLINE_GROUP
+from oodrl.io.store import severity_key
 
 Groups = dict[str, dict[str, np.ndarray]]
 
@@ -65,7 +65,7 @@ def tier_scores(
 ) -> tuple[Groups, dict]:  # fmt: skip
     """The groups and attributes of a detector's score store of one fault's tier streams (one
     group per reachable tier's severity; none when every tier is unreachable). `tiers`: the
-    tier sets by severity and the tier store's attributes, as `oodrl.store.read_tier_sets`
+    tier sets by severity and the tier store's attributes, as `oodrl.io.store.read_tier_sets`
     reads them."""
     sets, attrs = tiers
     groups = {

@@ -1,14 +1,15 @@
 """Impact tiers in the pipelines (SPEC §15): where each pipeline keeps them, the tiers an
 impact document gives, and the evaluation streams collected at them.
 
-The stages (one pipeline, `oodrl.pipeline`):
-- `impact@<fault>` writes `data/impact/<fault>.yaml` (`oodrl.impact`): the fault's impact curve
+The stages (one pipeline, `oodrl.suite.pipeline`):
+- `impact@<fault>` writes `data/impact/<fault>.yaml` (`oodrl.protocol.impact`): the fault's impact
+curve
   and the severity of each tier, or "unreachable";
 - `collect_tiers@<fault>` collects the evaluation streams with the fault live from the onset at
   each reachable tier (`tier_sets`): `data/tiers/<fault>.zarr`;
 - `collect_calibration`, `collect_audit` and `collect_twins` collect the held-out clean
-  streams (`oodrl.protocol.HELDOUT_SETS`);
-- each detector's `score_clean` and `score@<fault>` score them (`oodrl.layout` names the stores);
+  streams (`oodrl.protocol.streams.HELDOUT_SETS`);
+- each detector's `score_clean` and `score@<fault>` score them (`oodrl.io.layout` names the stores);
 - `tier_metrics` writes `reports/tier_results.yaml` and `reports/tiers/`
   (`oodrl.metrics.tiers`).
 """
@@ -19,11 +20,11 @@ import dataclasses
 from pathlib import Path
 from typing import Any
 
-from oodrl import yamlio
 from oodrl.config import Params
 from oodrl.core.trajectory import TrajectorySet
 from oodrl.errors import StoreError
-from oodrl.store import restore_hint
+from oodrl.io import yamlio
+from oodrl.io.store import restore_hint
 
 #: Where a pipeline keeps each fault's impact document, tier streams and their scores.
 IMPACT_DIR = "data/impact"
@@ -50,7 +51,7 @@ def read_impact(path: Path, fault: str) -> dict[str, Any]:
 
 def read_tiers(path: Path, fault: str) -> tuple[dict[str, float], list[str]]:
     """The reachable tiers' severities (tier -> σ, mild first) and the unreachable tiers."""
-    from oodrl.impact import UNREACHABLE
+    from oodrl.protocol.impact import UNREACHABLE
 
     tiers = read_impact(path, fault)["fault"]["tiers"]
     reachable = {n: float(t["severity"]) for n, t in tiers.items() if t["severity"] != UNREACHABLE}
@@ -70,12 +71,12 @@ def tier_sets(
 
     Observation faults run as their live counterparts (the policy acts on the faulty sensor),
     with the same parameters and the clean ID set's reference statistics, as in the impact
-    calibration that set the severities (`oodrl.impact.live_injectors`). The streams' seeds
+    calibration that set the severities (`oodrl.protocol.impact.live_injectors`). The streams' seeds
     are the first `tiers.n_streams` evaluation seeds, so each is the matched twin of a stream
     of the clean twins set (`collect_twins`).
     """
-    from oodrl.impact import live_injectors
-    from oodrl.protocol import online_sets, twin_seeds
+    from oodrl.protocol.impact import live_injectors
+    from oodrl.protocol.streams import online_sets, twin_seeds
 
     injector = live_injectors(params, [injector_name], id_path)[injector_name]
     label = f"{injector_name} ({len(tiers)} tiers)"

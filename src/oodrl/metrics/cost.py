@@ -85,8 +85,8 @@ def detector_costs(
 ) -> dict[str, dict[str, Any]]:
     """detector -> {fit_s, fitted_bytes, step_us_median, step_us_p99} for each pickle written by
     `oodrl fit` in `models` (name -> path); `fit_s` is None where `fit_seconds` lacks it."""
-    from oodrl.layout import detector_stage
-    from oodrl.store import load_detector
+    from oodrl.io.layout import detector_stage
+    from oodrl.io.store import load_detector
 
     streams = timed_streams(trajectories)
     costs = {}

@@ -5,15 +5,17 @@ from a Stable-Baselines3 .zip, an RL Zoo folder or an oodrl checkpoint, or a `mo
 pointer; `--train` trains one with SB3 instead), its params.yaml (T from the environment's
 episode length; the shared protocol's detectors; the faults the environment supports, with the
 action predicate of `action_conditioned_dynamics` read from the policy's own clean actions),
-`faults.yaml` (each fault left out, and why), and its DVC files, written by the generator every
-pipeline comes from (`oodrl.pipeline`). `cd pipeline/NAME && dvc repro` then runs the protocol.
+`faults.yaml` (each fault left out, and why), and its DVC files, written by the generator
+every pipeline comes from (`oodrl.suite.pipeline`). `cd pipeline/NAME && dvc repro` then runs
+the protocol.
 
 `--flatten` wraps an environment with a Dict, Tuple or other non-flat observation in
 gymnasium.wrappers.FlattenObservation: params name it `FlattenObservation(<id>)`, so every stage
 makes the wrapped environment (`oodrl.envs`).
 
-`--dataset PATH_OR_ID` makes a pipeline of recorded data instead (`oodrl.recorded`): a Minari
-dataset's episodes are its clean streams, so it has no policy and runs the post-hoc faults only.
+`--dataset PATH_OR_ID` makes a pipeline of recorded data instead (`oodrl.protocol.recorded`): a
+Minari dataset's episodes are its clean streams, so it has no policy and runs the post-hoc
+faults only.
 
 Everything (params, faults, models, DVC files) is made in a staging folder beside it,
 `pipeline/.NAME.new-<pid>`, and moved into place by one rename at the very end, so a refused or
@@ -88,7 +90,7 @@ def new_pipeline(
     seed: int = 0,
 ) -> NewPipeline:
     """Make `root/pipeline/NAME/` (see the module docstring); a one-line error otherwise."""
-    from oodrl.pipeline import ENVIRONMENTS_DIR
+    from oodrl.suite.pipeline import ENVIRONMENTS_DIR
 
     directory = root / ENVIRONMENTS_DIR / name
     _check_name(name, directory)
@@ -139,9 +141,9 @@ def _recorded_pipeline(
     env_id: str | None,
     T: int | None,  # noqa: N803
 ) -> NewPipeline:
-    """A pipeline of recorded data (`oodrl.recorded`): the dataset copied in, its params
+    """A pipeline of recorded data (`oodrl.protocol.recorded`): the dataset copied in, its params
     naming it (`policy.train`: source, id, sha256), the post-hoc faults only."""
-    from oodrl import recorded
+    from oodrl.protocol import recorded
 
     data_dir = recorded.locate(dataset)
     data = recorded.load(data_dir)
@@ -203,7 +205,7 @@ def _recorded_env(dataset_id: str, recorded_on: str | None, env_id: str | None) 
 def _shared_params(root: Path) -> Params:
     """The shared protocol new pipelines extend (structure checked; components later)."""
     from oodrl.config import load_params
-    from oodrl.pipeline import PARAMS_FILE
+    from oodrl.suite.pipeline import PARAMS_FILE
 
     return load_params(root / PARAMS_FILE, components=False)
 
@@ -294,7 +296,7 @@ def _alive(pid: int) -> bool:
 
 
 def _write_params(staging: Path, params: str, faults: str) -> None:
-    from oodrl.pipeline import PARAMS_FILE
+    from oodrl.suite.pipeline import PARAMS_FILE
 
     (staging / PARAMS_FILE).write_text(params)
     (staging / "faults.yaml").write_text(faults)
@@ -324,7 +326,7 @@ def fault_support(adapter: EnvironmentAdapter, injectors: list[str]) -> dict[str
 
 
 def _check_name(name: str, directory: Path) -> None:
-    from oodrl.pipeline import SUITE_DIR
+    from oodrl.suite.pipeline import SUITE_DIR
 
     if not NAME_PATTERN.fullmatch(name):
         raise ConfigError(
@@ -477,14 +479,14 @@ def _check_beats_random(
 ) -> None:
     """Refuse a policy no better than uniformly random actions: every impact stage would fail
     after collection (R̃ = (R − R_rand) / (R_clean − R_rand) needs R_clean > R_rand,
-    `oodrl.impact`). Random actions are scored on the evaluation's own episodes: episode i
+    `oodrl.protocol.impact`). Random actions are scored on the evaluation's own episodes: episode i
     resets from seed EVALUATION_SEED + i and draws its actions from numpy's generator of it.
 
     The rule: the policy's mean return must exceed random's mean by more than two standard
     errors of random's mean (its std / √n; none from one episode), so a policy whose return
     random actions reach by chance on these episodes is not taken for a trained one."""
-    from oodrl.impact import UniformRandomPolicy
     from oodrl.policies.evaluate import evaluate_policy
+    from oodrl.protocol.impact import UniformRandomPolicy
 
     evaluation = report["evaluation"]
     episodes, mean = int(evaluation["episodes"]), float(evaluation["mean"])
@@ -621,7 +623,7 @@ def _length_note(env_id: str, T: int) -> str:  # noqa: N803
 
 
 def faults_text(env_id: str, support: dict[str, str | None]) -> str:
-    from oodrl import yamlio
+    from oodrl.io import yamlio
 
     header = f"# The shared protocol's faults on {env_id} (oodrl new, SPEC §18).\n"
     return header + yamlio.dump(
@@ -635,7 +637,7 @@ def faults_text(env_id: str, support: dict[str, str | None]) -> str:
 def _check(directory: Path) -> None:
     """The new params validate, components and environment included (as check_params does)."""
     from oodrl.config import load_params
-    from oodrl.params_check import check_completely
+    from oodrl.suite.params_check import check_completely
 
     try:
         check_completely(load_params(directory / "params.yaml"))
@@ -644,7 +646,7 @@ def _check(directory: Path) -> None:
 
 
 def _write_dvc_files(directory: Path, root: Path) -> None:
-    from oodrl.pipeline import pipeline_files, subrepo_files
+    from oodrl.suite.pipeline import pipeline_files, subrepo_files
 
     files = {**pipeline_files(directory, root), **subrepo_files(directory, root)}
     for path, text in files.items():

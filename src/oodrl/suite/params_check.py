@@ -66,7 +66,7 @@ def _check_seed_ranges(params: Params) -> None:
         SEARCH_SEED_OFFSET,
         VERIFY_SEED_OFFSET,
     )
-    from oodrl.impact import LEVELS
+    from oodrl.protocol.impact import LEVELS
 
     data, tiers, search = params.data, params.tiers, params.tiers.search
     probes = len(LEVELS) * search.max_probes * search.probe_episodes

@@ -224,7 +224,7 @@ def live_injectors(
 
     reference = None
     if id_path is not None:
-        from oodrl.store import read_trajectories
+        from oodrl.io.store import read_trajectories
 
         reference = reference_statistics(read_trajectories(id_path, stage="collect_id").states)
     injectors = {}

@@ -319,7 +319,7 @@ def read_scores(
 # -- fitted detectors --------------------------------------------------------------------------
 def save_detector(path: Path, detector, name: str, params: Mapping[str, Any]) -> None:
     """Pickle a fitted detector with the versions and params that made it."""
-    from oodrl.fileio import atomic_write_bytes, library_versions
+    from oodrl.io.fileio import atomic_write_bytes, library_versions
 
     record = {
         "format": DETECTOR_FORMAT,
@@ -337,7 +337,7 @@ def load_detector(path: Path, stage: str | None):
     A plugin detector's pickle names its module beside params.yaml, which the `oodrl` command
     finds only with the project directory on sys.path, so it is added first.
     """
-    from oodrl.fileio import library_versions
+    from oodrl.io.fileio import library_versions
     from oodrl.registry import add_project_dir_to_path
 
     path = Path(path)

@@ -46,7 +46,7 @@ def tier_score_store(scores_dir: Path, detector: str, fault: str) -> Path:
 
 
 def heldout_score_store(scores_dir: Path, detector: str, which: str) -> Path:
-    """`detector`'s scores of a held-out clean set (`oodrl.protocol.HELDOUT_SETS`: the
+    """`detector`'s scores of a held-out clean set (`oodrl.protocol.streams.HELDOUT_SETS`: the
     per-stream alarm rule's calibration streams, the audit streams, the tier cells' twins)."""
     return Path(scores_dir) / detector / f"{which}.zarr"
 

@@ -11,7 +11,7 @@ into the protocol's streams of T steps:
   episode's last observation, `episode_index` counts the stream's episodes. An episode longer
   than what is left of the stream is cut there; its remaining steps are not used.
 - The ID set is the first `data.n_id` streams (fit and calibration split as for simulated
-  data, `oodrl.protocol.fit_calibration_split`), the evaluation set the `data.n_ood` streams
+  data, `oodrl.protocol.streams.fit_calibration_split`), the evaluation set the `data.n_ood` streams
   after them. A stream's `seeds` entry is the position of its first episode in the dataset,
   so step t of stream i is from the dataset's episode `seeds[i] + episode_index[i, t]`.
 
@@ -244,7 +244,7 @@ def clean_set(params: Params, split: str, data_dir: Path) -> TrajectorySet:
     """The clean ID set (`split` 'id', with its fit/calibration split) or evaluation set
     ('eval') of a recorded pipeline, from the dataset's copy in `data_dir`."""
     from oodrl.core.trajectory import TrajectorySet
-    from oodrl.protocol import fit_calibration_split
+    from oodrl.protocol.streams import fit_calibration_split
 
     sha256 = files_sha256(data_dir)
     recorded = params.policy.train.get("sha256")
