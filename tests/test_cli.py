@@ -137,3 +137,34 @@ def test_pipeline_check_refuses_a_stale_dvc_yaml_in_one_line(tmp_path, repo_root
 def test_numpy_stages_never_import_torch(module):
     code = f"import sys, {module}; assert 'torch' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_help_lists_the_stage_verbs_apart_from_the_commands_a_person_types(repo_root):
+    """`oodrl --help` has one panel of the verbs the pipelines' DVC files call and lists every
+    other command under Commands (a stage verb keeps its name: the dvc.yaml files call it).
+    `check-params` is both, and listed as a person's: one runs it before `dvc repro`."""
+    from oodrl.cli import STAGES_PANEL
+
+    def commands(node) -> list[str]:
+        if isinstance(node, dict):
+            found = [node["cmd"]] if isinstance(node.get("cmd"), str) else []
+            return found + [c for value in node.values() for c in commands(value)]
+        return [c for value in node for c in commands(value)] if isinstance(node, list) else []
+
+    files = [*repo_root.glob("**/dvc.yaml"), *(repo_root / "src/oodrl/suite").glob("*.yaml")]
+    called = {
+        command.split()[1]
+        for path in files
+        if ".dvc" not in path.parts
+        for command in commands(yaml.safe_load(path.read_text()))
+    }
+    assert called >= {"check-params", "collect-id", "fit", "score", "leaderboard", "import-dataset"}
+    panels = {info.name: info.rich_help_panel for info in app.registered_commands}
+    assert {name for name, panel in panels.items() if panel == STAGES_PANEL} == called - {
+        "check-params"
+    }
+    result = runner.invoke(app, ["--help"], env={"COLUMNS": "100"})
+    assert result.exit_code == 0, result.output
+    people, stages = result.output.split(STAGES_PANEL)
+    assert "check-params" in people and "suite" in people and "collect-id" not in people
+    assert "collect-id" in stages and "check-params" not in stages

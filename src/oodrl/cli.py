@@ -81,8 +81,14 @@ suite_app = typer.Typer(
 app.add_typer(suite_app, name="suite")
 
 
-def command(name: str | None = None, group: typer.Typer = app):
-    """Register a command whose OodrlErrors become a one-line message and an exit code."""
+#: `oodrl --help` lists the commands a person types first, then, in a panel of their own, the
+#: stage verbs the generated dvc.yaml files call (a stage's command name never changes).
+STAGES_PANEL = "Pipeline stages (dvc repro runs these)"
+
+
+def command(name: str | None = None, group: typer.Typer = app, panel: str | None = None):
+    """Register a command whose OodrlErrors become a one-line message and an exit code; `panel`:
+    the --help panel it is listed in (default: Commands)."""
 
     def decorate(func):
         @functools.wraps(func)
@@ -92,7 +98,7 @@ def command(name: str | None = None, group: typer.Typer = app):
             except OodrlError as error:
                 _fail(error)
 
-        return group.command(name)(wrapper)
+        return group.command(name, rich_help_panel=panel)(wrapper)
 
     return decorate
 
@@ -264,7 +270,7 @@ def monitor(
     )  # fmt: skip
 
 
-@command("impact-reference")
+@command("impact-reference", panel=STAGES_PANEL)
 def impact_reference(
     policy: Annotated[Path, PathOption()],
     out: Annotated[Path, PathOption(help="the clean and random-policy returns (YAML)")],
@@ -282,7 +288,7 @@ def impact_reference(
         run_impact_reference(config, policy, out, horizon=horizon)
 
 
-@command("impact")
+@command("impact", panel=STAGES_PANEL)
 def impact(
     policy: Annotated[Path, PathOption()],
     out: Annotated[Path, PathOption(help="impact.yaml: each fault's curve and tiers")],
@@ -412,7 +418,7 @@ def new(
 
 
 # -- stage verbs (dvc.yaml is their caller) ---------------------------------------------------
-@command("train-policy")
+@command("train-policy", panel=STAGES_PANEL)
 def train_policy(
     out: Annotated[Path, PathOption()],
     report: Annotated[Path, PathOption()],
@@ -427,7 +433,7 @@ def train_policy(
         run(config, out, report, retrain=retrain_requested())
 
 
-@command("collect-id")
+@command("collect-id", panel=STAGES_PANEL)
 def collect_id(
     policy: Annotated[Path, PathOption()],
     out: Annotated[Path, PathOption()],
@@ -441,7 +447,7 @@ def collect_id(
         run(config, policy, out)
 
 
-@command("collect-eval")
+@command("collect-eval", panel=STAGES_PANEL)
 def collect_eval(
     policy: Annotated[Path, PathOption()],
     out: Annotated[Path, PathOption()],
@@ -455,7 +461,7 @@ def collect_eval(
         run(config, policy, out)
 
 
-@command("import-dataset")
+@command("import-dataset", panel=STAGES_PANEL)
 def import_dataset(
     split: Annotated[str, typer.Argument(help="id (the ID set) or eval (the evaluation set)")],
     dataset: Annotated[Path, PathOption(help="the Minari dataset's copy: pipeline/NAME/dataset")],
@@ -484,7 +490,7 @@ def _known(name: str, names: list[str], key: str) -> None:
         )
 
 
-@command("collect-ood")
+@command("collect-ood", panel=STAGES_PANEL)
 def collect_ood(
     injector: Annotated[str, typer.Argument()],
     policy: Annotated[Path, PathOption()],
@@ -504,7 +510,7 @@ def collect_ood(
         run(config, injector, policy, eval, out)
 
 
-@command("collect-heldout")
+@command("collect-heldout", panel=STAGES_PANEL)
 def collect_heldout(
     which: Annotated[str, typer.Argument(help="calibration | audit | twins")],
     policy: Annotated[Path, PathOption()],
@@ -524,7 +530,7 @@ def collect_heldout(
         run(config, which, policy, out)
 
 
-@command("collect-tiers")
+@command("collect-tiers", panel=STAGES_PANEL)
 def collect_tiers(
     injector: Annotated[str, typer.Argument()],
     policy: Annotated[Path, PathOption()],
@@ -542,7 +548,7 @@ def collect_tiers(
         run(config, injector, policy, impact, id, out)
 
 
-@command("fit")
+@command("fit", panel=STAGES_PANEL)
 def fit(
     detector: Annotated[str, typer.Argument()],
     id: Annotated[Path, PathOption()],  # noqa: A002 - the option is --id
@@ -559,7 +565,7 @@ def fit(
         record.update(detector=detector, fit_s=round(fit_detector(config, detector, id, out), 3))
 
 
-@command("score")
+@command("score", panel=STAGES_PANEL)
 def score(
     detector: Annotated[str, typer.Argument()],
     model: Annotated[Path, PathOption()],
@@ -605,7 +611,7 @@ def score(
         stages.score_injector_sets(detector, injector, model, scores, ood, sweep, tiers)
 
 
-@command("tier-metrics")
+@command("tier-metrics", panel=STAGES_PANEL)
 def tier_metrics(
     scores: Annotated[Path, PathOption()],
     impact: Annotated[Path, PathOption(help="the directory of the faults' impact documents")],
@@ -622,7 +628,7 @@ def tier_metrics(
         run_tier_metrics(config, scores, impact, results, report)
 
 
-@command("metrics")
+@command("metrics", panel=STAGES_PANEL)
 def metrics(
     scores: Annotated[Path, PathOption()],
     results: Annotated[Path, PathOption()],
@@ -639,7 +645,7 @@ def metrics(
         run_metrics(config, scores, results, sweep_results, metrics_file, tables)
 
 
-@command("leaderboard")
+@command("leaderboard", panel=STAGES_PANEL)
 def leaderboard(
     out: Annotated[Path, PathOption()],
     root: Annotated[Path, typer.Option(help="the project root")] = Path("../.."),
@@ -653,7 +659,7 @@ def leaderboard(
         run(config, root, out)
 
 
-@command("render")
+@command("render", panel=STAGES_PANEL)
 def render(
     results: Annotated[Path, PathOption()],
     sweep_results: Annotated[Path, PathOption()],
