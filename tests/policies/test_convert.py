@@ -151,3 +151,18 @@ def test_sde_and_foreign_files_are_refused_in_one_line(tmp_path: Path):
                         tmp_path / "p.json")  # fmt: skip
         assert "\n" not in str(info.value)
         assert not (tmp_path / "p.pt").exists()
+
+
+def test_training_leaves_no_log_folder_in_the_temporary_directory(tmp_path, monkeypatch):
+    """SB3's quiet logger would make an empty `SB3-<date>` folder in the system's temporary
+    directory per training (`oodrl new --train`, the SAC trainer); oodrl's makes none."""
+    import tempfile
+
+    from oodrl.policies.convert import train_sb3
+
+    monkeypatch.delenv("SB3_LOGDIR", raising=False)
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    train_sb3("ppo", "CartPole-v1", 128, 0, tmp_path / "model.zip")
+    assert (tmp_path / "model.zip").is_file()
+    assert not list((tmp_path / "tmp").glob("SB3-*"))

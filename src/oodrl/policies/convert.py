@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from oodrl.errors import PolicyError
-from oodrl.policies.load import SB3_ALGORITHMS, _load_sb3, _sb3_algorithm
+from oodrl.policies.load import SB3_ALGORITHMS, _load_sb3, _sb3_algorithm, quiet_sb3_logger
 
 #: Largest difference from SB3's continuous action, as a share of the action range.
 ACTION_TOLERANCE = 1e-5
@@ -441,6 +441,7 @@ def train_sb3(choice: str, env_id: str, steps: int, seed: int, out: Path) -> Pat
     model = getattr(stable_baselines3, algorithm)(
         "MlpPolicy", make(env_id), seed=seed, device="cpu", verbose=0, **settings
     )
+    model.set_logger(quiet_sb3_logger())
     model.learn(total_timesteps=steps)
     model.save(out)
     return out

@@ -244,6 +244,15 @@ def _sb3_algorithm(data: bytes) -> str | None:
     return "other"
 
 
+def quiet_sb3_logger() -> Any:
+    """A Stable-Baselines3 logger that writes nothing anywhere. An SB3 model trained with
+    verbose=0 otherwise makes a logger whose folder, an empty `SB3-<date>` in the system's
+    temporary directory, is left behind by every training."""
+    from stable_baselines3.common.logger import Logger
+
+    return Logger(folder=None, output_formats=[])
+
+
 def _load_sb3(path: Path, algorithm: str) -> Any:
     try:
         import stable_baselines3

@@ -55,6 +55,7 @@ def train_sac(
     from oodrl.policies.act import policy_from_checkpoint
     from oodrl.policies.checkpoint import save_policy
     from oodrl.policies.evaluate import evaluate_policy
+    from oodrl.policies.load import quiet_sb3_logger
 
     torch.set_num_threads(1)
     started = time.perf_counter()
@@ -142,6 +143,7 @@ def train_sac(
 
     keep = KeepBest()
     remaining = config.total_steps - model.num_timesteps
+    model.set_logger(quiet_sb3_logger())
     model.learn(total_timesteps=remaining, callback=keep, reset_num_timesteps=False)
     env.close()
 
