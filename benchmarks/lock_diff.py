@@ -9,6 +9,8 @@ certified detectors only; a library detector's kernels are the machine's (`machi
 False, marked † in every table). So a changed output is explained when it belongs to such a
 detector (its fit or its scoring), or when it is a results file whose changed values all sit
 under such a detector's name (a YAML or JSON key path through the name; a table row naming it).
+The code stamps (`check_params`' `data/code`) change with the code by design (SPEC §12): reported,
+not judged, so a build after a change of code alone shows which outputs moved besides them.
 Anything else is a reproduction failure. Results files are compared value by value, so the
 report names each detector whose numbers moved. A figure (PNG) mixes detectors and is reported,
 not judged.
@@ -32,6 +34,8 @@ from oodrl.suite.pipeline import PARAMS_FILE, project_dirs
 from oodrl.testing.kernels import uncertified_detectors
 
 ROOT = Path(__file__).resolve().parents[1]
+#: (stage, output) of the code stamps: sha256 of the files each stage kind can execute.
+CODE_STAMPS = ("check_params", "data/code")
 
 
 def at_rev(rev: str, path: Path) -> str | None:
@@ -82,6 +86,34 @@ def changed_detectors(path: Path, old: str, new: str, names: set[str]) -> tuple[
     return found, unexplained
 
 
+def judged(project: Path, key: tuple[str, str], owner: str | None, uncertified: set[str],
+           rev: str) -> dict:  # fmt: skip
+    """The report row of one changed output `key` = (stage, output) of `project`: the detectors
+    it sits under and how many of its changes are not explained. `owner`: the detector whose
+    DVC file holds the stage (None for the project's own dvc.yaml)."""
+    stage, out = key
+    row = {"project": project.relative_to(ROOT).as_posix(), "stage": stage,
+           "output": out, "detectors": [], "unexplained": 0}  # fmt: skip
+    if key == CODE_STAMPS:
+        row["note"] = "the code stamps: they change with the code, not judged"
+    elif owner is not None:
+        row["detectors"] = [owner]
+        row["unexplained"] = int(owner not in uncertified)
+    elif not out.startswith("reports/"):
+        row["unexplained"], row["note"] = 1, "data of the certified protocol"
+    elif out.endswith(".png") or not (project / out).is_file():
+        row["note"] = "a figure or directory of reports/: reported, not judged"
+    else:
+        old = at_rev(rev, project / out)
+        if old is None:
+            row["unexplained"], row["note"] = 1, "not in git at the revision"
+        else:
+            found, bad = changed_detectors(project / out, old, (project / out).read_text(),
+                                           uncertified)  # fmt: skip
+            row["detectors"], row["unexplained"] = sorted(found), bad
+    return row
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rev", default="HEAD")
@@ -100,30 +132,16 @@ def main(argv: list[str] | None = None) -> int:
             for key in sorted(set(before) | set(after)):
                 if before.get(key) == after.get(key):
                     continue
-                stage, out = key
                 owner = lock.parent.name if lock in detector_locks else None
-                row = {"project": project.relative_to(ROOT).as_posix(), "stage": stage,
-                       "output": out, "detectors": [], "unexplained": 0}  # fmt: skip
-                if owner is not None:
-                    row["detectors"] = [owner]
-                    row["unexplained"] = int(owner not in uncertified)
-                elif not out.startswith("reports/"):
-                    row["unexplained"], row["note"] = 1, "data of the certified protocol"
-                elif out.endswith(".png") or not (project / out).is_file():
-                    row["note"] = "a figure or directory of reports/: reported, not judged"
-                else:
-                    old = at_rev(args.rev, project / out)
-                    if old is None:
-                        row["unexplained"], row["note"] = 1, "not in git at the revision"
-                    else:
-                        found, bad = changed_detectors(
-                            project / out, old, (project / out).read_text(), uncertified
-                        )
-                        row["detectors"], row["unexplained"] = sorted(found), bad
+                row = judged(project, key, owner, uncertified, args.rev)
                 unexplained_total += row["unexplained"]
                 report.append(row)
     for row in report:
-        verdict = "UNEXPLAINED" if row["unexplained"] else "uncertified only"
+        verdict = (
+            "UNEXPLAINED"
+            if row["unexplained"]
+            else ("uncertified only" if row["detectors"] else "reported")
+        )
         print(f"{row['project']}: {row['stage']} {row['output']}: {verdict} "
               f"{', '.join(row['detectors'])} {row.get('note', '')}".rstrip())  # fmt: skip
     projects = len({row["project"] for row in report})

@@ -75,3 +75,15 @@ def test_a_table_row_is_explained_by_the_detector_it_names(lock_diff, tmp_path):
     assert lock_diff.changed_detectors(path, old, new, {"pyod_iforest"}) == ({"pyod_iforest"}, 0)
     new = old.replace("0.91", "0.92")
     assert lock_diff.changed_detectors(path, old, new, {"pyod_iforest"}) == (set(), 2)
+
+
+def test_the_code_stamps_are_reported_and_any_other_protocol_data_is_a_failure(lock_diff):
+    """A change of code moves the code stamps by design; a moved store of the certified protocol
+    (here an ID set) is a reproduction failure, a library detector's scores are not."""
+    project = lock_diff.ROOT
+    stamps = lock_diff.judged(project, lock_diff.CODE_STAMPS, None, set(), "HEAD")
+    assert stamps["unexplained"] == 0 and "code stamps" in stamps["note"]
+    data = lock_diff.judged(project, ("collect_id", "data/id.zarr"), None, set(), "HEAD")
+    assert data["unexplained"] == 1
+    scores = lock_diff.judged(project, ("score@x", "scores/k"), "pyod_knn", {"pyod_knn"}, "HEAD")
+    assert (scores["detectors"], scores["unexplained"]) == (["pyod_knn"], 0)
