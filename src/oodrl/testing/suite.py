@@ -66,7 +66,7 @@ def suite_copy(
         edit_params(dest, edit)
     if edit_suite is not None:
         edit_params(dest, edit_suite, SUITE_PARAMS)
-    _cut_suite_list(dest / "src" / "oodrl" / "suite.py", pipelines)
+    _cut_suite_list(dest / "src" / "oodrl" / "suite" / "environments.py", pipelines)
     run(dest, "oodrl", "pipeline", "write", env=code_env(dest))
     run(dest, "git", "init", "-q")
     run(dest, "git", "add", "-A")
