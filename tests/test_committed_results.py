@@ -5,6 +5,7 @@ shows the numbers the locks stand for without computing anything."""
 from __future__ import annotations
 
 import hashlib
+import json
 import subprocess
 from pathlib import Path
 
@@ -40,3 +41,24 @@ def test_every_committed_result_is_the_file_its_lock_records(repo_root):
                 assert hashlib.md5(data).hexdigest() == md5, f"{name} is not what its lock records"
                 checked += 1
     assert checked > 0, "no committed result was checked"
+
+
+def test_every_committed_lock_records_the_sources_of_this_commit(repo_root):
+    """check_params depends on oodrl's sources (an environment's project on each file, the root
+    on the directory): a commit that edits one and not the locks leaves every clone's `dvc repro`
+    re-running check_params and rewriting dvc.lock. The environments' file hashes are compared
+    here; the root's directory hash by DVC itself."""
+    stale = []
+    for project in pipeline_dirs(repo_root)[1:]:
+        stage = yaml.safe_load((project / "dvc.lock").read_text())["stages"]["check_params"]
+        for dep in stage["deps"]:
+            path = project / dep["path"]
+            if path.is_file() and hashlib.md5(path.read_bytes()).hexdigest() != dep["md5"]:
+                stale.append(f"{project.name}: {dep['path']}")
+    assert not stale, f"relock check_params (dvc repro -s check_params) in: {stale[:5]}"
+    done = subprocess.run(
+        ["dvc", "status", "--json", "check_params"], cwd=repo_root, capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr
+    changes = json.loads(done.stdout).get("check_params", [])
+    assert not [c for c in changes if isinstance(c, dict) and "changed deps" in c], changes
