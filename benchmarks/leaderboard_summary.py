@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from oodrl import yamlio  # libyaml's loader: a tier results file is megabytes
+from oodrl.io import yamlio  # libyaml's loader: a tier results file is megabytes
 
 #: SPEC §20's detectors: the policy view, value-function surprise, a recurrent predictor, an
 #: anytime-valid test and the two baselines.
