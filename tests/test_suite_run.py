@@ -16,7 +16,7 @@ from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
 from oodrl.cli import app
-from oodrl.suite_run import _unchanged_since_found_current, _up_to_date, run_suite
+from oodrl.suite_run import RUN_META, _unchanged_since_found_current, _up_to_date, run_suite
 from oodrl.testing.pipeline import run
 
 pytestmark = pytest.mark.slow
@@ -64,6 +64,11 @@ def test_local_workers_leave_the_locks_of_a_serial_run(fresh_suite, serial_locks
     assert first.head_ran == (f"{SUITE}:leaderboard",)
     assert sum(line.startswith("started") for line in lines) == 2
     assert sum(line.startswith("finished") for line in lines) == 2
+    # Each task's stage times came back with its locks (git ignores them): the next run orders
+    # the pipelines by them.
+    for pipeline in (".", "pipeline/cartpole"):
+        assert "total_stage_wall_s:" in (fresh_suite / pipeline / RUN_META).read_text()
+    assert "run_meta" not in run(fresh_suite, "git", "status", "--porcelain").stdout
 
     again = run_suite(fresh_suite, workers=2, echo=lines.append)
     assert (again.pipelines, again.head_ran) == ((), ())

@@ -65,6 +65,12 @@ REMOTE_ANSWER_S = 10
 STOP_GRACE_S = 10
 
 
+#: A project's provenance and stage times, written by its render stage when it runs; git ignores
+#: it. A task brings it back with the locks, so the head's `_longest_first` knows each
+#: pipeline's last build.
+RUN_META = Path("reports") / "run_meta.yaml"
+
+
 class SuiteRunError(OodrlError):
     """A pipeline's task, the DVC remote or the Ray cluster failed; the checkout is untouched."""
 
@@ -164,7 +170,8 @@ def checkout_files(project: Path) -> dict[str, bytes]:
     of its DVC files, every output DVC does not cache (metrics.json, the policy) and the
     .gitignore beside each output (`dvc repro` adds a cached output's entry, `dvc checkout` does
     not: a new stage's output would show as untracked). With these written, `dvc checkout`
-    makes another checkout of the commit the built project."""
+    makes another checkout of the commit the built project. When the task ran render, also its
+    `RUN_META` (the stage times of what this build ran)."""
     from dvc.repo import Repo
 
     with Repo(str(project)) as repo:
@@ -176,6 +183,8 @@ def checkout_files(project: Path) -> dict[str, bytes]:
         paths |= {f for path in uncached for f in ([path] if path.is_file() else path.rglob("*"))}
         paths = {path for path in paths if path.is_file()}
         paths |= {ignore for path, _ in outs if (ignore := path.parent / ".gitignore").is_file()}
+    if (project / RUN_META).is_file():
+        paths.add(project / RUN_META)
     return {path.relative_to(project).as_posix(): path.read_bytes() for path in sorted(paths)}
 
 
@@ -506,7 +515,7 @@ def _longest_first(root: Path, pipelines: list[str]) -> list[str]:
     with none (never built here) counts as the longest. Ties keep the suite's order."""
 
     def last_build_seconds(pipeline: str) -> float:
-        meta = root / pipeline / "reports" / "run_meta.yaml"
+        meta = root / pipeline / RUN_META
         found = re.search(r"^total_stage_wall_s: ([0-9.]+)$", _text_or_empty(meta), re.MULTILINE)
         return float(found[1]) if found else math.inf
 
