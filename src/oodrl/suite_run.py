@@ -424,9 +424,7 @@ def _build_suite(
         echo(f"suite: remote {remote.name!r} ({remote.options.get('url')}) is read-only "
              f"({read_only}): restoring from it, building what it lacks locally, pushing "
              f"nothing")  # fmt: skip
-    shared_cache = None if ray_address else _cache_dir(root)
-    if shared_cache and not (remote and remote.writable):
-        _check_one_cache(root, projects, shared_cache)
+    shared_cache = None if ray_address else _cache_dir(root, projects)
     echo(f"suite: checking {len(projects)} projects with dvc status ({workers} at a time)")
     watched = _watched_files(root, projects)
     before = _signature(root, watched)  # before the checks: a change during them shows next time
@@ -729,28 +727,25 @@ def default_remote(root: Path) -> Remote | None:
         return Remote(name, {key: str(value) for key, value in repo.config["remote"][name].items()})
 
 
-def _cache_dir(root: Path) -> str:
-    """The DVC cache every project of the checkout uses (the root's, SUBREPO_FILES)."""
-    return _run(root, {}, "dvc", "cache", "dir").stdout.strip()
-
-
-def _check_one_cache(root: Path, projects: list[str], shared_cache: str) -> None:
-    """Local tasks fill the root's cache and the head checks each project out of its own, so
-    they must be one: an environment project's generated .dvc/config names the root's
-    .dvc/cache, which a root cache moved by config (`dvc cache dir --local`) is not."""
+def _cache_dir(root: Path, projects: list[str]) -> str:
+    """The DVC cache local tasks fill: the root's (SUBREPO_FILES), which every project must use
+    too, since the head checks each project out of its own. An environment project's generated
+    .dvc/config names the root's .dvc/cache, which a root cache moved by config (`dvc cache dir
+    --local`) is not: refused in one line before any task."""
     from dvc.config import Config
 
-    cache = Path(shared_cache).resolve()
+    shared = _run(root, {}, "dvc", "cache", "dir").stdout.strip()
     for project in projects:
         dvc_dir = root / project / ".dvc"
         own = Path(Config(dvc_dir=str(dvc_dir))["cache"].get("dir") or dvc_dir / "cache")
-        if own.resolve() != cache:
+        if own.resolve() != Path(shared).resolve():
             raise ConfigError(
-                f"{project} uses the DVC cache {own}, the root {cache}; local workers fill the "
+                f"{project} uses the DVC cache {own}, the root {shared}; local workers fill the "
                 f"root's and each project is checked out of its own. Give every project the "
-                f"root's (`dvc cache dir --local {cache}` in its directory) or keep the root's "
+                f"root's (`dvc cache dir --local {shared}` in its directory) or keep the root's "
                 f"in .dvc/cache."
             )
+    return shared
 
 
 def _check_remote(root: Path, remote: Remote) -> str | None:

@@ -476,7 +476,7 @@ def _try(root: Path, name: str, class_path: str, features: str | None,
         "bundle": staged.bundle,
         "commit": staged.commit,
         "remote": remote,
-        "shared_cache": _cache_dir(root),
+        "shared_cache": _cache_dir(root, [".", *runs, SUITE_DIR.as_posix()]),
         "targets": staged.targets,
     }
     began = time.perf_counter()
