@@ -53,7 +53,9 @@ def test_every_committed_lock_records_the_sources_of_this_commit(repo_root):
         stage = yaml.safe_load((project / "dvc.lock").read_text())["stages"]["check_params"]
         for dep in stage["deps"]:
             path = project / dep["path"]
-            if path.is_file() and hashlib.md5(path.read_bytes()).hexdigest() != dep["md5"]:
+            if path.is_dir():  # a directory's hash is DVC's own
+                continue
+            if not path.is_file() or hashlib.md5(path.read_bytes()).hexdigest() != dep["md5"]:
                 stale.append(f"{project.name}: {dep['path']}")
     assert not stale, f"relock check_params (dvc repro -s check_params) in: {stale[:5]}"
     done = subprocess.run(

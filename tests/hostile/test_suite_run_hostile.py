@@ -86,6 +86,24 @@ def test_a_remote_that_is_a_file_is_refused(tmp_path):
         suite_run._check_writable(repo, suite_run.default_remote(repo))
 
 
+def test_a_root_cache_moved_by_config_is_refused_before_any_task(tmp_path, status_calls):
+    """Local tasks fill the root's cache; pipeline/a's .dvc/config names the root's .dvc/cache,
+    which `dvc cache dir --local` moved away: the head could not check pipeline/a out."""
+    repo = tiny_suite(tmp_path / "repo", QUICK)
+    dvc(repo, "cache", "dir", "--local", str(tmp_path / "elsewhere"))
+    before = _files(tmp_path)
+    result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
+    assert result.exit_code == 2, result.output
+    error = result.output.splitlines()[-1]
+    assert error.startswith("error: pipeline/a uses the DVC cache ") and "elsewhere" in error
+    assert "dvc cache dir --local" in error
+    assert status_calls == [] and _files(tmp_path) == before
+    # The same cache given to every project, as the line says: the run goes on.
+    for project in (repo / "pipeline" / "a", repo / "pipeline" / "suite"):
+        dvc(project, "cache", "dir", "--local", str(tmp_path / "elsewhere"))
+    assert run_suite(repo, workers=2, echo=lambda line: None).pipelines == ()
+
+
 # -- 2. a --ray address where something other than Ray answers ---------------------------------
 @pytest.fixture
 def http_server():

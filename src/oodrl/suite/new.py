@@ -41,6 +41,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from oodrl.errors import ConfigError, ContractError, OodrlError, PolicyError
+from oodrl.suite.scratch import remove_dead
 
 if TYPE_CHECKING:
     from oodrl.config import Params
@@ -217,7 +218,7 @@ def _staged(directory: Path, root: Path) -> Iterator[Path]:
     SIGTERM, SIGHUP) before that rename removes the staging folder, so `directory` is complete
     or absent; other processes never see a half-made pipeline under its name."""
     directory.parent.mkdir(parents=True, exist_ok=True)
-    _remove_dead_staging(directory.parent)
+    remove_dead(directory.parent, STAGING_PATTERN)
     staging = directory.with_name(f".{directory.name}.new-{os.getpid()}")
     with _signals_end_staging():
         try:
@@ -271,28 +272,6 @@ def _ignore_signals() -> None:
         for number in (signal.SIGINT, *ENDING_SIGNALS):
             if signal.getsignal(number) is not None:
                 signal.signal(number, signal.SIG_IGN)
-
-
-def _remove_dead_staging(parent: Path) -> None:
-    """Remove the staging folders of `oodrl new` runs that died without cleaning up (SIGKILL,
-    a crash): their process is gone, or its pid is this process's own (reused). A live run's
-    folder is left to it."""
-    for path in parent.iterdir():
-        match = STAGING_PATTERN.fullmatch(path.name)
-        if match and path.is_dir():
-            pid = int(match["pid"])
-            if pid == os.getpid() or not _alive(pid):
-                shutil.rmtree(path, ignore_errors=True)
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)  # signal 0: only whether the process exists
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # another user's process
-        return True
-    return True
 
 
 def _write_params(staging: Path, params: str, faults: str) -> None:

@@ -54,6 +54,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from oodrl.errors import ConfigError, OodrlError
+from oodrl.suite.scratch import remove_dead, working_folder
 
 #: A task whose node dies runs again on another node up to this many times.
 RAY_MAX_RETRIES = 3
@@ -63,6 +64,20 @@ RAY_HANDSHAKE_S = 10
 REMOTE_ANSWER_S = 10
 #: Seconds an interrupted git or DVC process has to stop on its own (Ctrl-C) before it is killed.
 STOP_GRACE_S = 10
+
+
+#: The temporary folders of a task (its clone) and of a run's DVC config, named with their
+#: process's pid: a task killed with its node leaves them, and the next task on that machine
+#: removes them (`oodrl.suite.scratch`).
+TASK_FOLDER, DVC_CONFIG_FOLDER = "oodrl-suite-", "oodrl-dvc-config-"
+DEAD_TASK_FOLDER = re.compile(rf"(?:{TASK_FOLDER}|{DVC_CONFIG_FOLDER})(?P<pid>[0-9]+)-\w+")
+
+
+def remove_dead_task_folders() -> None:
+    """Remove the task folders killed runs left on this machine. Called where this process has
+    none of its own yet (a run's start, a Ray task's start): local tasks are threads of one
+    process, and `remove_dead` takes a folder of this process's pid for a reused pid's."""
+    remove_dead(Path(tempfile.gettempdir()), DEAD_TASK_FOLDER)
 
 
 #: A project's provenance and stage times, written by its render stage when it runs; git ignores
@@ -148,7 +163,7 @@ def build_pipeline(
     leaves nothing in the head's checkout; the remote and the cache receive whole objects only
     (written aside, then renamed) and a run-cache entry only once its stage has finished."""
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="oodrl-suite-") as scratch, _dvc_config(remote) as env:
+    with working_folder(TASK_FOLDER) as scratch, _dvc_config(remote) as env:
         clone = Path(scratch) / "repo"
         (Path(scratch) / "head.bundle").write_bytes(bundle)
         _run(Path(scratch), env, "git", "clone", "-q", "--no-checkout", "head.bundle", "repo")
@@ -236,7 +251,7 @@ def _dvc_config(remote: Remote | None) -> Iterator[dict[str, str]]:
     from configobj import ConfigObj
     from dvc.dirs import system_config_dir
 
-    with tempfile.TemporaryDirectory(prefix="oodrl-dvc-config-") as directory:
+    with working_folder(DVC_CONFIG_FOLDER) as directory:
         config = ConfigObj(os.path.join(system_config_dir(), "config"))
         config.filename = os.path.join(directory, "config")
         config.setdefault("core", {})["remote"] = remote.name
@@ -371,6 +386,7 @@ def run_suite(
     start = time.perf_counter()
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1. Got {workers} instead.")
+    remove_dead_task_folders()
     with _ending_processes_on_signals():
         return _build_suite(root, workers, ray_address, echo, start)
 
@@ -409,6 +425,7 @@ def _build_suite(
         echo(f"suite: remote {remote.name!r} ({remote.options.get('url')}) is read-only "
              f"({read_only}): restoring from it, building what it lacks locally, pushing "
              f"nothing")  # fmt: skip
+    shared_cache = None if ray_address else _cache_dir(root, projects)
     echo(f"suite: checking {len(projects)} projects with dvc status ({workers} at a time)")
     watched = _watched_files(root, projects)
     before = _signature(root, watched)  # before the checks: a change during them shows next time
@@ -432,7 +449,7 @@ def _build_suite(
         "bundle": _bundle(root),
         "commit": _run(root, {}, "git", "rev-parse", "HEAD").stdout.strip(),
         "remote": remote,
-        "shared_cache": None if ray_address else _cache_dir(root),
+        "shared_cache": shared_cache,
     }
     if ray_address is None:
         building = _local_tasks(root, stale, job, workers, echo)
@@ -561,6 +578,7 @@ def _ray_tasks(
 def _ray_build(**job) -> tuple[float, tuple[str, ...], dict[str, bytes], str]:
     import ray
 
+    remove_dead_task_folders()
     return *build_pipeline(**job), ray.get_runtime_context().get_node_id()
 
 
@@ -710,9 +728,25 @@ def default_remote(root: Path) -> Remote | None:
         return Remote(name, {key: str(value) for key, value in repo.config["remote"][name].items()})
 
 
-def _cache_dir(root: Path) -> str:
-    """The DVC cache every project of the checkout uses (the root's, SUBREPO_FILES)."""
-    return _run(root, {}, "dvc", "cache", "dir").stdout.strip()
+def _cache_dir(root: Path, projects: list[str]) -> str:
+    """The DVC cache local tasks fill: the root's (SUBREPO_FILES), which every project must use
+    too, since the head checks each project out of its own. An environment project's generated
+    .dvc/config names the root's .dvc/cache, which a root cache moved by config (`dvc cache dir
+    --local`) is not: refused in one line before any task."""
+    from dvc.config import Config
+
+    shared = _run(root, {}, "dvc", "cache", "dir").stdout.strip()
+    for project in projects:
+        dvc_dir = root / project / ".dvc"
+        own = Path(Config(dvc_dir=str(dvc_dir))["cache"].get("dir") or dvc_dir / "cache")
+        if own.resolve() != Path(shared).resolve():
+            raise ConfigError(
+                f"{project} uses the DVC cache {own}, the root {shared}; local workers fill the "
+                f"root's and each project is checked out of its own. Give every project the "
+                f"root's (`dvc cache dir --local {shared}` in its directory) or keep the root's "
+                f"in .dvc/cache."
+            )
+    return shared
 
 
 def _check_remote(root: Path, remote: Remote) -> str | None:
@@ -788,7 +822,7 @@ def _check_writable(root: Path, remote: Remote) -> str | None:
 
 def _bundle(root: Path) -> bytes:
     """The head's commit and its history in one file: a task on any node clones from it."""
-    with tempfile.TemporaryDirectory(prefix="oodrl-suite-") as scratch:
+    with working_folder(TASK_FOLDER) as scratch:
         path = Path(scratch) / "head.bundle"
         _run(root, {}, "git", "bundle", "create", "-q", str(path), "HEAD")
         return path.read_bytes()

@@ -444,9 +444,11 @@ def _try(root: Path, name: str, class_path: str, features: str | None,
         _run,
         default_remote,
         ran_stages,
+        remove_dead_task_folders,
         restore_project,
     )
 
+    remove_dead_task_folders()
     runs = suite_runs(root)
     block = detector_block(class_path, features, options)
     check_name(root, name, runs)
@@ -474,7 +476,7 @@ def _try(root: Path, name: str, class_path: str, features: str | None,
         "bundle": staged.bundle,
         "commit": staged.commit,
         "remote": remote,
-        "shared_cache": _cache_dir(root),
+        "shared_cache": _cache_dir(root, [".", *runs, SUITE_DIR.as_posix()]),
         "targets": staged.targets,
     }
     began = time.perf_counter()
