@@ -13,7 +13,9 @@ The code stamps (`check_params`' `data/code`) change with the code by design (SP
 not judged, so a build after a change of code alone shows which outputs moved besides them.
 Anything else is a reproduction failure. Results files are compared value by value, so the
 report names each detector whose numbers moved. A figure (PNG) mixes detectors and is reported,
-not judged.
+not judged, and so is a page (HTML): it renders a JSON beside it, which is judged. The suite's
+project has no params of its own: its leaderboard gathers every environment's detectors, so the
+uncertified ones of any environment explain its changes.
 
 Exit 1 when some change is not explained.
 """
@@ -101,8 +103,8 @@ def judged(project: Path, key: tuple[str, str], owner: str | None, uncertified: 
         row["unexplained"] = int(owner not in uncertified)
     elif not out.startswith("reports/"):
         row["unexplained"], row["note"] = 1, "data of the certified protocol"
-    elif out.endswith(".png") or not (project / out).is_file():
-        row["note"] = "a figure or directory of reports/: reported, not judged"
+    elif out.endswith((".png", ".html")) or not (project / out).is_file():
+        row["note"] = "a figure, page or directory of reports/: reported, not judged"
     else:
         old = at_rev(rev, project / out)
         if old is None:
@@ -114,16 +116,25 @@ def judged(project: Path, key: tuple[str, str], owner: str | None, uncertified: 
     return row
 
 
+def uncertified_by_project(projects: list[Path]) -> dict[Path, set[str]]:
+    """Each project's detectors not certified machine-independent; a project without params
+    (the suite's, whose leaderboard gathers every environment's detectors) gets them all."""
+    own = {project: set(uncertified_detectors(read_params_data(project / PARAMS_FILE)))
+           for project in projects if (project / PARAMS_FILE).is_file()}  # fmt: skip
+    everywhere = set().union(*own.values())
+    return {project: own.get(project, everywhere) for project in projects}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rev", default="HEAD")
     parser.add_argument("--json", type=Path)
     args = parser.parse_args(argv)
     report, unexplained_total = [], 0
-    for project in project_dirs(ROOT):
-        params_file = project / PARAMS_FILE
-        uncertified = set(uncertified_detectors(read_params_data(params_file))) if (
-            params_file.is_file()) else set()  # fmt: skip
+    projects = project_dirs(ROOT)
+    uncertified_in = uncertified_by_project(projects)
+    for project in projects:
+        uncertified = uncertified_in[project]
         detector_locks = sorted(project.glob(f"{DETECTOR_PIPELINES}/*/dvc.lock"))
         for lock in [project / "dvc.lock", *detector_locks]:
             if not lock.is_file():
@@ -144,11 +155,11 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"{row['project']}: {row['stage']} {row['output']}: {verdict} "
               f"{', '.join(row['detectors'])} {row.get('note', '')}".rstrip())  # fmt: skip
-    projects = len({row["project"] for row in report})
+    changed_projects = len({row["project"] for row in report})
     moved = sorted({name for row in report for name in row["detectors"]})
     print(f"detectors whose outputs changed: {', '.join(moved) or 'none'}")
     print(
-        f"{len(report)} changed outputs in {projects} projects; "
+        f"{len(report)} changed outputs in {changed_projects} projects; "
         f"{unexplained_total} changes not under a detector uncertified machine-independent"
     )
     if args.json:

@@ -87,3 +87,18 @@ def test_the_code_stamps_are_reported_and_any_other_protocol_data_is_a_failure(l
     assert data["unexplained"] == 1
     scores = lock_diff.judged(project, ("score@x", "scores/k"), "pyod_knn", {"pyod_knn"}, "HEAD")
     assert (scores["detectors"], scores["unexplained"]) == (["pyod_knn"], 0)
+
+
+def test_the_suite_judges_by_every_environments_detectors_and_reports_its_page(lock_diff):
+    """The suite's project has no params of its own: its leaderboard gathers every environment's
+    detectors, so their uncertified ones explain its changes; its HTML page renders the JSON
+    beside it and is reported, not judged."""
+    projects = lock_diff.project_dirs(lock_diff.ROOT)
+    uncertified = lock_diff.uncertified_by_project(projects)
+    suite = lock_diff.ROOT / "pipeline" / "suite"
+    environments = [uncertified[p] for p in projects if p != suite]
+    assert uncertified[suite] == set().union(*environments)
+    assert "pyod_iforest" in uncertified[suite]
+    assert not uncertified[lock_diff.ROOT]  # the root's detectors are all certified
+    page = lock_diff.judged(suite, ("leaderboard", "reports/leaderboard.html"), None, set(), "HEAD")
+    assert page["unexplained"] == 0 and "page" in page["note"]
