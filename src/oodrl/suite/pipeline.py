@@ -192,7 +192,39 @@ def _with_parents(module: str) -> list[str]:
 @cache
 def _module_imports(path: Path, mtime_ns: int, package: str, strings: bool) -> frozenset[str]:
     """Every module a file's import statements (and strings) name, cached per file version."""
-    return frozenset(imported_modules(ast.walk(_parse(path)), package, strings))
+    tree = _parse(path)
+    hooks = _lazy_hooks(path, tree)
+    nodes = (n for top in tree.body if top not in hooks for n in ast.walk(top))
+    return frozenset(imported_modules(nodes, package, strings))
+
+
+#: PEP 562's module hooks: in a package's `__init__.py` they resolve names the module lacks
+#: (oodrl's Python API, SPEC §25). Only `package.<missing name>` runs them and no stage does
+#: that, so a stage's files and stamp leave them out: the API grows without re-running stages.
+LAZY_HOOKS = frozenset({"__getattr__", "__dir__"})
+
+
+def _lazy_hooks(path: Path, tree: ast.Module) -> list[ast.AST]:
+    if path.name != "__init__.py":
+        return []
+    return [
+        node
+        for node in tree.body
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef) and node.name in LAZY_HOOKS
+    ]
+
+
+def stage_source(path: Path) -> bytes:
+    """A file's bytes as a stage's stamp hashes them: a package `__init__.py` less its lazy
+    hooks (and the blank lines they leave at its end), so adding them changes no stamp."""
+    data = path.read_bytes()
+    hooks = _lazy_hooks(path, _parse(path))
+    if not hooks:
+        return data
+    lines = data.decode().splitlines(keepends=True)
+    dropped = {i for node in hooks for i in range(node.lineno - 1, node.end_lineno or 0)}
+    kept = "".join(line for i, line in enumerate(lines) if i not in dropped)
+    return (kept.rstrip("\n") + "\n").encode()
 
 
 @cache
@@ -371,7 +403,7 @@ def stamp_text(project: Project, files: set[Path], verb: str) -> str:
     cli = project.cli_file()
 
     def content(file: Path) -> bytes:
-        return project.command_source(verb).encode() if file == cli else file.read_bytes()
+        return project.command_source(verb).encode() if file == cli else stage_source(file)
 
     paths = sorted((project.relative(f), f) for f in files)
     return "".join(f"{hashlib.sha256(content(f)).hexdigest()}  {p}\n" for p, f in paths)
