@@ -1,0 +1,408 @@
+"""`load_results`: any pipeline's or the suite's results as one tidy pandas DataFrame.
+
+The frame has one row per environment, policy, fault, tier, detector and metric; `COLUMNS`
+names its columns. How each results file's records become rows: `tier_rows`, `results_rows`,
+`sweep_rows`, `leaderboard_rows`, `ranking_rows`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterable, Iterator, Mapping
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from oodrl.api.project import (
+    Pipeline,
+    is_pipeline,
+    is_suite,
+    pipeline_at,
+    project_root,
+    resolve_directory,
+)
+from oodrl.errors import ConfigError, StoreError
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+#: Every results frame's columns, in order.
+COLUMNS = (
+    "env", "policy", "fault", "tier", "detector", "metric", "value", "ci_low", "ci_high",
+    "n_streams", "severity", "mode", "verified", "family",
+)  # fmt: skip
+#: kind -> the file holding it, relative to a pipeline's (or the suite's) directory.
+PIPELINE_FILES = {
+    "results": Path("reports/results.yaml"),
+    "tiers": Path("reports/tier_results.yaml"),
+    "sweep": Path("reports/sweep_results.yaml"),
+}
+SUITE_FILES = {
+    "leaderboard": Path("reports/leaderboard.json"),
+    "ranking": Path("reports/leaderboard.json"),
+}
+KINDS = (*PIPELINE_FILES, *SUITE_FILES)
+#: A results file's name -> its kind, for a file passed as `where`.
+FILE_KINDS = {
+    "results.yaml": "results",
+    "tier_results.yaml": "tiers",
+    "sweep_results.yaml": "sweep",
+    "leaderboard.json": "leaderboard",
+}
+#: The tier of the records at the headline severity (the paper's protocol) and of the null
+#: baselines in results.yaml; every sweep record's tier (its severity is in `severity`).
+HEADLINE_TIER = "headline"
+NULL_TIER = "null"
+SWEEP_TIER = "sweep"
+
+
+def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFrame:
+    """Load a pipeline's or the suite's results as one tidy DataFrame.
+
+    Parameters
+    ----------
+    where : str or path-like, default "."
+        A pipeline directory (the project root is the paper's LunarLander pipeline;
+        ``pipeline/<env>`` each environment's), the suite directory (``pipeline/suite``), or
+        a results file (``results.yaml``, ``tier_results.yaml``, ``sweep_results.yaml``,
+        ``leaderboard.json``). A pipeline's name (``"cartpole"``), an environment id of the
+        suite (``"CartPole-v1"``) or ``"suite"`` is looked up in the project around the
+        working directory.
+    kind : {"results", "tiers", "sweep", "leaderboard", "ranking"}, optional
+        Which results. For a pipeline (default ``"results"``):
+
+        - ``"results"``: ``reports/results.yaml``, every detector × fault at the headline
+          severity (tier ``"headline"``) and the null baselines (tier ``"null"``);
+        - ``"tiers"``: ``reports/tier_results.yaml``, every detector × fault × impact tier
+          (``benign``, ``mild``, ``moderate``, ``severe``) at the per-stream false-alarm
+          budget α: ``detection_rate@K`` with its Clopper-Pearson CI, the delays of the
+          detected streams, the achieved clean false-alarm rate and every per-episode
+          metric with its bootstrap CI;
+        - ``"sweep"``: ``reports/sweep_results.yaml``, every severity of the sweep (tier
+          ``"sweep"``, the severity in ``severity``).
+
+        For the suite (default ``"leaderboard"``): ``"leaderboard"``, every (environment,
+        policy, fault, tier) cell of ``reports/leaderboard.json`` with each detector's
+        matched AUROC and, at the tiers, its operating point; ``"ranking"``, the
+        leaderboard's interquartile means over cells with their stratified-bootstrap CIs
+        (``env`` None: over every environment; otherwise the environments, joined by
+        ``"|"``, where more detectors run). ``"results"``, ``"tiers"`` and ``"sweep"`` of the
+        suite concatenate those of all its runs. For a file, its name says its kind.
+
+    Returns
+    -------
+    pandas.DataFrame
+        One row per environment, policy, fault, tier, detector and metric, with the columns
+        ``env``, ``policy`` (``"0"`` for an environment's first policy), ``fault``, ``tier``,
+        ``detector``, ``metric``, ``value``, ``ci_low``, ``ci_high``, ``n_streams`` (the
+        streams or episodes behind the value), ``severity`` (σ of the fault),
+        ``mode`` (``online`` or ``posthoc``), ``verified`` (whether the tier's severity was
+        verified, SPEC §19) and ``family`` (observation, action or dynamics), None or NaN
+        where the results hold no such value. The metrics of a record keep their results
+        file's names (``matched_auroc``, ``detection_rate@100``, ...); from the operating
+        point also ``delay_median@K``, ``delay_p90@K`` (``n_streams``: the streams detected
+        within K; NaN below 5 of them), ``clean_false_alarm_rate`` (on the audit streams)
+        and ``early_false_alarm_rate``. ``frame.attrs`` holds the files' protocol version,
+        params hash and paths.
+
+    Raises
+    ------
+    oodrl.errors.ConfigError
+        An unknown `where` or `kind`: one line naming what is allowed.
+    oodrl.errors.StoreError
+        A results file that is missing or is not one.
+
+    Notes
+    -----
+    The suite's leaderboard loads in about a second (JSON). A pipeline's
+    ``tier_results.yaml`` is a large YAML document: parsing it takes 8-13 s with libyaml
+    (PyYAML's ``CSafeLoader``, used when available) and far longer without. Protocol
+    version 4 stores results for programs too, and this function will read those.
+
+    Examples
+    --------
+    >>> board = oodrl.load_results("pipeline/suite")
+    >>> mild = board.query("tier == 'mild' and metric == 'detection_rate@100'")
+    >>> mild.groupby("detector").value.mean().sort_values(ascending=False).head()
+    """
+    import pandas as pd
+
+    rows, attrs = _load_rows(where, kind)
+    frame = pd.DataFrame.from_records(list(rows), columns=list(COLUMNS))
+    frame.attrs.update(attrs)
+    return frame
+
+
+def _load_rows(where: str | Path, kind: str | None) -> tuple[Iterable[dict], dict]:
+    if kind is not None and kind not in KINDS:
+        raise ConfigError(f"kind {kind!r} is not a kind of results. Allowed: {', '.join(KINDS)}.")
+    path = resolve_directory(where, "where")
+    if path.is_file():
+        return _file_rows(path, kind)
+    if is_suite(path):
+        return _suite_rows(path, kind or "leaderboard")
+    if is_pipeline(path):
+        kind = kind or "results"
+        if kind not in PIPELINE_FILES:
+            raise ConfigError(
+                f"kind {kind!r} is the suite's (pass the suite directory, pipeline/suite); a "
+                f"pipeline's kinds: {', '.join(PIPELINE_FILES)}."
+            )
+        return _pipeline_rows(pipeline_at(path), kind)
+    raise ConfigError(
+        f"where {str(where)!r}: a directory that is neither a pipeline (params.yaml and "
+        "dvc.yaml) nor the suite (pipeline/suite). Allowed: a pipeline directory, the suite "
+        f"directory, or a results file ({', '.join(FILE_KINDS)})."
+    )
+
+
+def _file_rows(path: Path, kind: str | None) -> tuple[Iterable[dict], dict]:
+    file_kind = FILE_KINDS.get(path.name)
+    if file_kind is None:
+        raise ConfigError(
+            f"where {str(path)!r}: not a results file by its name. Allowed: "
+            f"{', '.join(FILE_KINDS)} (or a pipeline or suite directory)."
+        )
+    if kind is not None and kind != file_kind and {kind, file_kind} != {"leaderboard", "ranking"}:
+        raise ConfigError(
+            f"kind {kind!r} does not match {path.name}, which holds {file_kind!r} results."
+        )
+    kind = kind or file_kind
+    if kind in SUITE_FILES:
+        return _board_rows(read_json(path), kind, path)
+    pipeline_dir = path.parent.parent
+    pipeline = pipeline_at(pipeline_dir) if is_pipeline(pipeline_dir) else None
+    return _document_rows(read_yaml(path), kind, pipeline, path)
+
+
+def _pipeline_rows(pipeline: Pipeline, kind: str) -> tuple[Iterable[dict], dict]:
+    path = pipeline.directory / PIPELINE_FILES[kind]
+    return _document_rows(read_yaml(path), kind, pipeline, path)
+
+
+def _suite_rows(directory: Path, kind: str) -> tuple[Iterable[dict], dict]:
+    if kind in SUITE_FILES:
+        path = directory / SUITE_FILES[kind]
+        return _board_rows(read_json(path), kind, path)
+    from oodrl.suite.environments import suite_runs
+
+    root = project_root(directory) or directory.parent.parent
+    rows: list[dict] = []
+    files: list[str] = []
+    for relative in suite_runs().values():
+        pipeline = pipeline_at(root / relative)
+        found, attrs = _pipeline_rows(pipeline, kind)
+        rows.extend(found)
+        files.extend(attrs["files"])
+    return rows, {"kind": kind, "files": files}
+
+
+def _document_rows(
+    document: Any, kind: str, pipeline: Pipeline | None, path: Path
+) -> tuple[Iterable[dict], dict]:
+    if not isinstance(document, Mapping):
+        raise StoreError(f"{path}: not a results file (a mapping of records).")
+    env = pipeline.env if pipeline else None
+    policy = pipeline.policy if pipeline else None
+    attrs = {
+        "kind": kind,
+        "protocol_version": document.get("protocol_version"),
+        "params_hash": document.get("params_hash"),
+        "files": [str(path)],
+    }
+    if kind == "sweep":
+        if not isinstance(document.get("sweep"), Mapping):
+            raise StoreError(f"{path}: not a sweep results file (no 'sweep' mapping).")
+        return list(sweep_rows(document, env, policy)), attrs
+    if not isinstance(document.get("records"), list):
+        raise StoreError(f"{path}: not a results file (no 'records' list).")
+    if kind == "tiers":
+        return list(tier_rows(document["records"], env, policy)), attrs
+    return list(results_rows(document["records"], env, policy)), attrs
+
+
+def _board_rows(document: Any, kind: str, path: Path) -> tuple[Iterable[dict], dict]:
+    if not isinstance(document, Mapping) or not isinstance(document.get("cells"), list):
+        raise StoreError(f"{path}: not the suite's leaderboard.json (no 'cells' list).")
+    attrs = {
+        "kind": kind,
+        "protocol_version": document.get("protocol_version"),
+        "params_hash": document.get("params_hash"),
+        "alpha": document.get("alpha"),
+        "files": [str(path)],
+    }
+    rows = ranking_rows(document) if kind == "ranking" else leaderboard_rows(document)
+    return list(rows), attrs
+
+
+# -- reading -------------------------------------------------------------------------------
+def read_yaml(path: Path) -> Any:
+    """A YAML results file through libyaml when PyYAML has it (`oodrl.io.yamlio`)."""
+    import yaml
+
+    from oodrl.io import yamlio
+
+    if not path.is_file():
+        raise StoreError(f"{path}: no results file here; {_restore_hint(path)}.")
+    try:
+        return yamlio.load(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as error:
+        raise StoreError(f"{path}: not a YAML results file ({_first_line(error)}).") from None
+
+
+def read_json(path: Path) -> Any:
+    if not path.is_file():
+        raise StoreError(f"{path}: no leaderboard here; {_restore_hint(path)}.")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (ValueError, UnicodeDecodeError) as error:
+        raise StoreError(f"{path}: not a JSON leaderboard ({_first_line(error)}).") from None
+
+
+def _restore_hint(path: Path) -> str:
+    return (
+        "the pipeline writes it (results files are tracked by git: `git checkout` restores a "
+        "committed one; `dvc repro` in its pipeline builds one that was never made)"
+    )
+
+
+def _first_line(error: BaseException) -> str:
+    return " ".join(str(error).split())[:200]
+
+
+# -- records -> rows -----------------------------------------------------------------------
+def _number(value: Any) -> float:
+    """A results value as a float; NaN where there is none (None, "beyond range")."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return math.nan
+    return float(value)
+
+
+def _family(fault: str | None) -> str | None:
+    from oodrl.metrics.leaderboard import fault_family
+
+    return fault_family(fault) if fault else None
+
+
+def _row(base: Mapping[str, Any], metric: str, value: Any, ci: Any = None, n: Any = None) -> dict:
+    low, high = ci if isinstance(ci, list | tuple) and len(ci) == 2 else (None, None)
+    return {
+        **base,
+        "metric": metric,
+        "value": _number(value),
+        "ci_low": _number(low),
+        "ci_high": _number(high),
+        "n_streams": _number(n),
+    }
+
+
+def metric_rows(base: Mapping[str, Any], metrics: Mapping[str, Any]) -> Iterator[dict]:
+    """One row per metric of a record's `metrics` (mean, CI and episodes)."""
+    for name, stats in sorted(metrics.items()):
+        if isinstance(stats, Mapping):
+            ci = [stats.get("ci_low"), stats.get("ci_high")]
+            yield _row(base, name, stats.get("mean"), ci, stats.get("n_episodes"))
+
+
+def operating_rows(base: Mapping[str, Any], point: Mapping[str, Any]) -> Iterator[dict]:
+    """The rows of a per-stream operating point (`oodrl.metrics.operating`): the detection
+    rate within K with its CI, the delays of the detected streams, the false-alarm rates."""
+    k = point.get("k")
+    delay = point.get("delay") or {}
+    n_faulty = point.get("n_faulty")
+    yield _row(base, f"detection_rate@{k}", point.get("detection_rate"),
+               point.get("detection_rate_ci"), n_faulty)  # fmt: skip
+    yield _row(base, f"delay_median@{k}", delay.get("median"), None, delay.get("n_detected"))
+    yield _row(base, f"delay_p90@{k}", delay.get("p90"), None, delay.get("n_detected"))
+    yield _row(base, "clean_false_alarm_rate", point.get("clean_false_alarm_rate"),
+               point.get("clean_false_alarm_ci"), point.get("n_clean"))  # fmt: skip
+    yield _row(base, "early_false_alarm_rate", point.get("early_false_alarm_rate"), None, n_faulty)
+
+
+def _base(env, policy, fault, tier, detector, severity, mode, verified) -> dict[str, Any]:
+    return {
+        "env": env, "policy": policy, "fault": fault, "tier": tier, "detector": detector,
+        "severity": _number(severity), "mode": mode, "verified": verified,
+        "family": _family(fault),
+    }  # fmt: skip
+
+
+def tier_rows(records: Iterable[Mapping[str, Any]], env: str | None, policy: str | None):
+    """Rows of tier_results.yaml's records (`oodrl.metrics.tiers`)."""
+    for r in records:
+        base = _base(env, policy, r.get("injector"), r.get("tier"), r.get("detector"),
+                     r.get("severity"), r.get("mode"), r.get("verified"))  # fmt: skip
+        yield from operating_rows(base, r.get("operating_point") or {})
+        yield from metric_rows(base, r.get("metrics") or {})
+
+
+def results_rows(records: Iterable[Mapping[str, Any]], env: str | None, policy: str | None):
+    """Rows of results.yaml's records: anomaly records at the headline severity, null
+    baselines (their fault None: one per detector and mode)."""
+    for r in records:
+        tier = NULL_TIER if r.get("kind") == "null" else HEADLINE_TIER
+        base = _base(env, policy, r.get("injector"), tier, r.get("detector"),
+                     r.get("severity"), r.get("mode"), None)  # fmt: skip
+        yield from metric_rows(base, r.get("metrics") or {})
+
+
+def sweep_rows(document: Mapping[str, Any], env: str | None, policy: str | None):
+    """Rows of sweep_results.yaml: fault -> severity -> detector -> metrics."""
+    modes = document.get("modes") or {}
+    for fault, severities in sorted(document["sweep"].items()):
+        for severity, detectors in sorted(severities.items()):
+            for detector, metrics in sorted(detectors.items()):
+                base = _base(env, policy, fault, SWEEP_TIER, detector, severity,
+                             modes.get(fault), None)  # fmt: skip
+                yield from metric_rows(base, metrics or {})
+
+
+def leaderboard_rows(document: Mapping[str, Any]) -> Iterator[dict]:
+    """Rows of the leaderboard's cells: each detector's matched AUROC (mean and CI) and, at
+    the impact tiers, its operating point."""
+    for cell in document["cells"]:
+        for detector, evidence in sorted(cell["evidence"].items()):
+            base = {
+                **_base(
+                    cell["environment"],
+                    cell["policy"],
+                    cell["fault"],
+                    cell["tier"],
+                    detector,
+                    evidence.get("severity"),
+                    None,
+                    None,
+                ),  # fmt: skip
+                "family": cell.get("family"),
+            }
+            point = evidence.get("operating_point")
+            auroc = evidence.get("matched_auroc") or {}
+            n = point.get("n_faulty") if point else None
+            yield _row(base, "matched_auroc", auroc.get("mean"),
+                       [auroc.get("ci_low"), auroc.get("ci_high")], n)  # fmt: skip
+            if point:
+                yield from operating_rows(base, point)
+
+
+def _descending(value: Any) -> tuple[bool, float]:
+    number = _number(value)
+    return math.isnan(number), -number if not math.isnan(number) else 0.0
+
+
+def ranking_rows(document: Mapping[str, Any]) -> Iterator[dict]:
+    """Rows of the leaderboard's interquartile means: over every environment (env None),
+    then per group of environments where more detectors run (env: their ids joined by |)."""
+    groups: list[tuple[str | None, str, str, Mapping]] = []
+    for metric, tiers in (document.get("iqm") or {}).items():
+        for tier, by_detector in tiers.items():
+            groups.append((None, metric, tier, by_detector))
+    for metric, tiers in (document.get("iqm_where_more_detectors_run") or {}).items():
+        for tier, entries in tiers.items():
+            for entry in entries:
+                groups.append(("|".join(entry["environments"]), metric, tier, entry["iqm"]))
+    for env, metric, tier, by_detector in groups:
+        ranked = sorted(by_detector.items(), key=lambda item: _descending(item[1].get("value")))
+        for detector, stats in ranked:
+            base = _base(env, None, None, tier, detector, None, None, None)
+            yield _row(base, metric, stats.get("value"),
+                       [stats.get("ci_low"), stats.get("ci_high")])  # fmt: skip
