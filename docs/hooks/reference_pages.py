@@ -14,6 +14,8 @@ from types import NoneType, UnionType
 from typing import Any, Literal, Union, get_args, get_origin
 
 ROOT = Path(__file__).resolve().parents[2]
+#: The params blocks that hold one block of keys per component, listed after the schema.
+COMPONENT_BLOCKS = {"detectors": "detectors", "anomaly.injectors": "injectors"}
 #: typer's name for the panel of commands given none.
 DEFAULT_PANEL = "Commands"
 
@@ -296,7 +298,9 @@ def params_file_comments(path: Path) -> dict[str, str]:
     found: dict[str, str] = {}
     stack: list[tuple[int, str]] = []
     for line in path.read_text().splitlines():
-        match = re.match(r"^( *)([A-Za-z_]\w*):(?: +(.*?))?(?: +# +(.*))?$", line)
+        match = re.match(
+            r"^( *)([A-Za-z_]\w*):(?:[ \t]+([^#\s].*?))?(?:[ \t]+#[ \t]*(.*))?[ \t]*$", line
+        )
         if not match:
             continue
         indent, key, _, comment = (
@@ -361,7 +365,7 @@ def _components_section() -> list[str]:
     from oodrl.validation import constructor_params
 
     lines = [
-        "## Component parameters",
+        "## Component parameters {#params-components}",
         "",
         "The blocks `detectors.NAME` and `anomaly.injectors.NAME` hold each component's own "
         "parameters: the keyword arguments of its class, validated by its declared constraints "
@@ -444,7 +448,9 @@ def params_page(params_file: Path | None = None) -> str:
         for key, field in model.model_fields.items():
             path = f"{prefix}{key}"
             if path not in leaves:
-                rows.append(f"| `{path}` | section | | | [below](#{anchor_of('params-' + path)}) |")
+                about = escape(explained.get(path, ""))
+                link = f"[below](#{anchor_of('params-' + path)})"
+                rows.append(f"| `{path}` | section | | | {about + '; ' if about else ''}{link} |")
                 continue
             required, default = default_of(field)
             cells = [
@@ -454,6 +460,8 @@ def params_page(params_file: Path | None = None) -> str:
                 escape(_range(field)),
                 escape(field.description or comments.get(key) or explained.get(path, "")),
             ]
+            if path in COMPONENT_BLOCKS:
+                cells[-1] += f"; each one's keys: [{COMPONENT_BLOCKS[path]}](#params-components)"
             rows.append("| " + " | ".join(cells) + " |")
         lines += [
             "| key | type | default | range | description |",
