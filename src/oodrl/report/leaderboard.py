@@ -49,6 +49,8 @@ MDI_LEVEL = 0.9
 METRIC_LABELS = {MATCHED_AUROC: "matched AUROC"}
 #: The performance-profile thresholds the tables quote (the figure draws every τ).
 QUOTED_TAUS = (0.9, 1.0)
+#: The tier whose detection rate the harm table sets beside the alarm rate on `benign` shifts.
+HARMFUL_TIER = "mild"
 #: Where the log axis of the optimality-gap figure draws a gap of exactly 0.
 GAP_FLOOR = 1e-4
 
@@ -243,6 +245,12 @@ def _floor_lines(overall: Aggregate, label: str) -> list[str]:
     ]
 
 
+def lower_is_better(metric: str, tier: str) -> bool:
+    """Whether a lower score is the better one: a detection on a harmless (`benign`) shift is a
+    false alarm; every other (metric, tier) counts the higher score the better."""
+    return tier == BENIGN_TIER and metric.startswith("detection_rate")
+
+
 def _order(board: Aggregate, harmless: bool) -> list[str]:
     """Best first; on harmless shifts, where a detection is a false alarm, the quietest first."""
     if harmless:
@@ -270,7 +278,7 @@ def _section(
     overall = board.overall[(metric, tier)]
     unflagged = board.unflagged.get((metric, tier))
     label = metric_label(metric, alpha)
-    harmless = tier == BENIGN_TIER and metric.startswith("detection_rate")
+    harmless = lower_is_better(metric, tier)
     order = _order(overall, harmless)
     envs = list(overall.environments)
     header = ["detector", *envs, "IQM [95% CI]", "mean [95% CI]"]
@@ -362,17 +370,23 @@ def _section(
     return lines
 
 
+def harm_metric(board: Board) -> str | None:
+    """The detection rate ranked at both `mild` and `benign`: what tells a harmful shift from a
+    harmless one (SPEC §19), or None when the board has no such metric."""
+    return next(
+        (m for m in board.metrics if m.startswith("detection_rate")
+         and (m, HARMFUL_TIER) in board.overall and (m, BENIGN_TIER) in board.overall),
+        None,
+    )  # fmt: skip
+
+
 def _harm_lines(board: Board, alpha: float | None) -> list[str]:
     """Detects what hurts, stays quiet on what does not (SPEC §19): per detector, its
     detection rate at `mild` beside its alarm rate on `benign` shifts, and the difference."""
-    metric = next(
-        (m for m in board.metrics if m.startswith("detection_rate")
-         and (m, "mild") in board.overall and (m, BENIGN_TIER) in board.overall),
-        None,
-    )  # fmt: skip
+    metric = harm_metric(board)
     if metric is None:
         return []
-    harmful, harmless = board.overall[(metric, "mild")], board.overall[(metric, BENIGN_TIER)]
+    harmful, harmless = board.overall[(metric, HARMFUL_TIER)], board.overall[(metric, BENIGN_TIER)]
     detectors = sorted(
         set(harmful.detectors) & set(harmless.detectors),
         key=lambda d: (-(harmful.iqm[d].value - harmless.iqm[d].value), d),

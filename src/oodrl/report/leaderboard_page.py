@@ -1,16 +1,22 @@
-"""The leaderboard page (SPEC §21): one self-contained HTML file of every cell and its evidence.
+"""The leaderboard page (SPEC §21, §25): one self-contained HTML file that opens on the ranking.
 
 `page_data` gathers what the leaderboard read (`oodrl.report.leaderboard.read_inputs`) and
-ranked into one document, leaderboard.json: every (environment, policy, fault, tier) cell with
-each detector's score per metric (the mean of its per-episode values, the (run, task) score the
-leaderboard aggregates) and its evidence (the record's severity, matched AUROC with its CI and,
-at the impact tiers, its operating point: detection rate against K, delays, the clean
-false-alarm rate achieved beside α); each (environment, policy, fault)'s impact curve and tiers,
-with a tier's verification where the tier results carry one; the protocol version and a params
-hash. `page_html` embeds that document, as a `<script type="application/json">` block, in the
-template leaderboard_page.html, whose inline CSS and JavaScript draw the table and the evidence
-(SVG): the page needs no network and no fetch. Same inputs, same bytes: keys sorted, no time,
-no host path (SPEC §14).
+ranked into one document, leaderboard.json: per (metric, tier) each detector's IQM and mean
+with their CIs and the number of cells (and the same where more detectors run); where a lower
+score is the better one (`lower_is_better`: alarms on harmless shifts), each metric's colour
+scale, and the detection rate whose `benign` and `mild` IQMs give the alarm rate on harmless
+shifts and the gap; every (environment, policy, fault, tier) cell with each detector's score per
+metric (the mean of its per-episode values, the (run, task) score the leaderboard aggregates)
+and its evidence (the record's severity, matched AUROC with its CI and, at the impact tiers, its
+operating point: detection rate against K, delays, the clean false-alarm rate achieved beside
+α); each (environment, policy, fault)'s impact curve and tiers, with a tier's verification where
+the tier results carry one; the protocol version and a params hash. `page_html` embeds that
+document, as a `<script type="application/json">` block, in the template leaderboard_page.html,
+whose inline CSS and JavaScript draw, first, the chosen tier and metric's ranking (IQM [95% CI]
+drawn as intervals, mean, benign alarm rate, mild − benign gap) and then that tier's cells, each
+opening its evidence (SVG); the view (tier, metric, sorts, filters) is kept in the URL's
+fragment. The page needs no network and no fetch. Same inputs, same bytes: keys sorted, no
+time, no host path (SPEC §14).
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from oodrl.metrics.leaderboard import (
+    BENIGN_TIER,
     FAULT_FAMILIES,
     FLOOR_DETECTOR,
     OTHER_FAMILY,
@@ -35,7 +42,15 @@ from oodrl.metrics.leaderboard import (
     policy_key,
 )
 from oodrl.metrics.stamp import UNSTAMPED_VERSION
-from oodrl.report.leaderboard import MATCHED_AUROC, OPERATING_POINT, Inputs, metric_label
+from oodrl.report.leaderboard import (
+    HARMFUL_TIER,
+    MATCHED_AUROC,
+    OPERATING_POINT,
+    Inputs,
+    harm_metric,
+    lower_is_better,
+    metric_label,
+)
 
 #: The page's HTML, CSS and JavaScript; the suite's leaderboard stage depends on it.
 PAGE_TEMPLATE = Path(__file__).with_name("leaderboard_page.html")
@@ -107,8 +122,24 @@ def _cells(inputs: Inputs, board: Board) -> list[dict[str, Any]]:
     ]
 
 
-def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int) -> dict:
-    """leaderboard.json's content (see the module doc)."""
+def colour_scale(metric: str) -> list[float]:
+    """The scores a metric's colours run between, worst to best when higher is better: an AUROC
+    at chance (½) is as bad as it gets, a rate runs from 0 to 1."""
+    return [0.5, 1.0] if metric.endswith("auroc") else [0.0, 1.0]
+
+
+def page_data(
+    inputs: Inputs,
+    board: Board,
+    *,
+    n_boot: int,
+    ci: float,
+    seed: int,
+    us_per_step: Mapping[str, float] | None = None,
+) -> dict:
+    """leaderboard.json's content (see the module doc). `us_per_step`: each detector's median µs
+    per streamed step, when the caller measured it; a pipeline's timings are the machine's, never
+    a pipeline output (SPEC §13, §14), so the suite's page carries none."""
     settings = {"ci": ci, "n_boot": n_boot, "seed": seed}
     cells = _cells(inputs, board)
     lead = board.overall[board.lead].ranked()
@@ -116,7 +147,9 @@ def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int
         {d for c in cells for m in c["scores"].values() for d in m} - set(lead)
     )
     families = {c["family"] for c in cells}
-    return {
+    harm = harm_metric(board)
+    by_metric = {m: {t: a for (n, t), a in board.overall.items() if n == m} for m in board.metrics}
+    data = {
         "protocol_version": inputs.protocol_version,
         "params_hash": suite_params_hash(inputs.params_hashes, settings),
         "leaderboard_params": settings,
@@ -136,13 +169,26 @@ def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int
         "detectors": detectors,
         "lead": {"metric": board.lead[0], "tier": board.lead[1]},
         "iqm": {
-            metric: {
-                tier: {d: a.iqm[d].as_dict() for d in a.detectors}
-                for (m, tier), a in board.overall.items()
-                if m == metric
-            }
-            for metric in board.metrics
+            metric: {tier: {d: a.iqm[d].as_dict() for d in a.detectors} for tier, a in ts.items()}
+            for metric, ts in by_metric.items()
         },
+        "mean": {
+            metric: {tier: {d: a.mean[d].as_dict() for d in a.detectors} for tier, a in ts.items()}
+            for metric, ts in by_metric.items()
+        },
+        "n_cells": {
+            metric: {tier: a.n_cells for tier, a in ts.items()} for metric, ts in by_metric.items()
+        },
+        # Where a lower score is the better one (alarms on harmless shifts), and the range each
+        # metric's colours run over: the page colours and sorts by them.
+        "lower_is_better": {
+            metric: [tier for tier in ts if lower_is_better(metric, tier)]
+            for metric, ts in by_metric.items()
+        },
+        "colour_scale": {metric: colour_scale(metric) for metric in board.metrics},
+        # The detection rate whose IQM on harmless shifts is an alarm rate, beside the same at
+        # the mildest harmful tier: the ranking's "detects what hurts" columns (SPEC §19).
+        "harm": harm and {"metric": harm, "harmful": HARMFUL_TIER, "harmless": BENIGN_TIER},
         # Detectors that run on some cells only, ranked there (`detector_scopes`).
         "iqm_where_more_detectors_run": {
             metric: {
@@ -151,6 +197,7 @@ def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int
                         "environments": list(scope.environments),
                         "n_cells": scope.n_cells,
                         "iqm": {d: scope.iqm[d].as_dict() for d in scope.detectors},
+                        "mean": {d: scope.mean[d].as_dict() for d in scope.detectors},
                     }
                     for scope in scopes
                 ]
@@ -170,6 +217,9 @@ def page_data(inputs: Inputs, board: Board, *, n_boot: int, ci: float, seed: int
             )
         ],
     }
+    if us_per_step is not None:
+        data["us_per_step"] = {d: _rounded(v) for d, v in us_per_step.items()}
+    return data
 
 
 def _compact(value: Any) -> str:
