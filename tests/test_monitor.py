@@ -126,11 +126,11 @@ def test_a_pickled_detector_by_its_path(tmp_path):
 
 
 def test_the_readme_monitor_snippet_runs(tmp_path, monkeypatch, capsys):
-    """The README's Python example, as printed, with a cusum fitted here in place of the
+    """The monitor page's Python example, as printed, with a cusum fitted here in place of the
     pipeline's pickle (a DVC output, absent from a fresh clone)."""
-    from test_readme import README, blocks, parse_sections
+    from test_readme import blocks, section
 
-    (snippet,) = blocks(parse_sections(README.read_text())[MONITOR_SECTION], "python")
+    (snippet,) = blocks(section(MONITOR_SECTION), "python")
     pipeline_pickle = "pipeline/cartpole/models/detectors/cusum.pkl"
     assert f'"{pipeline_pickle}"' in snippet
     clean = collect(ENVIRONMENTS.get("CartPole-v1")(), _policy("CartPole-v1"), range(3), 60)
@@ -138,7 +138,7 @@ def test_the_readme_monitor_snippet_runs(tmp_path, monkeypatch, capsys):
     cusum = DETECTORS.get("cusum")().fit(trajectories[:2]).calibrate(trajectories[2:])
     save_detector(tmp_path / pipeline_pickle, cusum, "cusum", {})
     monkeypatch.chdir(tmp_path)
-    exec(compile(snippet, str(README), "exec"), {})
+    exec(compile(snippet, str(MONITOR_SECTION[0]), "exec"), {})
     score, alarm = capsys.readouterr().out.split()[-2:]
     assert math.isfinite(float(score)) and alarm in {"True", "False"}
 
@@ -224,21 +224,25 @@ def test_the_monitor_command_over_episodes_needs_a_fault(monkeypatch):
     assert result.exit_code == 2 and "name a --fault" in result.output
 
 
-# -- the README's demonstration ------------------------------------------------------------------
-MONITOR_SECTION = "Deploy a detector: the runtime monitor"
+# -- the monitor page's demonstration ------------------------------------------------------------
+#: The monitor how-to's section: its Python example, its demo command and the cell it quotes.
+MONITOR_SECTION = (
+    ROOT / "docs" / "how-to" / "monitor.md",
+    "Deploy a detector: the runtime monitor",
+)
 CELL = re.compile(r"<!-- monitor-cell -->([\d.]+) \[([\d.]+), ([\d.]+)\]<!-- /monitor-cell -->")
 
 
 def _readme_demo() -> tuple[list[str], tuple[float, float, float]]:
-    """The README's `oodrl monitor … --episodes N` command (its arguments) and the leaderboard
-    cell it quotes: detection_rate@K and its interval."""
-    from test_readme import README, blocks, parse_sections, shell_commands
+    """The monitor page's `oodrl monitor … --episodes N` command (its arguments) and the
+    leaderboard cell it quotes: detection_rate@K and its interval."""
+    from test_readme import blocks, section, shell_commands
 
-    section = parse_sections(README.read_text())[MONITOR_SECTION]
-    (command,) = [c for b in blocks(section, "bash") for c in shell_commands(b)]
+    demo = section(MONITOR_SECTION)
+    (command,) = [c for b in blocks(demo, "bash") for c in shell_commands(b)]
     args = shlex.split(command)
     assert args[:2] == ["oodrl", "monitor"] and "--episodes" in args, command
-    rate, low, high = (float(x) for x in CELL.search(section.prose).groups())
+    rate, low, high = (float(x) for x in CELL.search(demo.prose).groups())
     return args[2:], (rate, low, high)
 
 
@@ -248,8 +252,8 @@ def _option(args: list[str], name: str) -> str:
 
 @pytest.mark.slow
 def test_the_readme_monitor_demo_agrees_with_its_leaderboard_cell(monkeypatch):
-    """The rate the README's demo prints (a detector fitted by the monitor, on its own seeds)
-    lies in the interval of the leaderboard cell the README quotes for it."""
+    """The rate the monitor page's demo prints (a detector fitted by the monitor, on its own
+    seeds) lies in the interval of the leaderboard cell the page quotes for it."""
     from typer.testing import CliRunner
 
     from oodrl.cli import app
@@ -265,7 +269,7 @@ def test_the_readme_monitor_demo_agrees_with_its_leaderboard_cell(monkeypatch):
 
 
 def test_the_readme_monitor_cell_is_the_committed_result():
-    """The cell the README quotes is the committed run's (reports/tier_results.yaml, a DVC
+    """The cell the monitor page quotes is the committed run's (reports/tier_results.yaml, a DVC
     output: present after `dvc repro` or `dvc pull`), at the tier severity the demo deploys."""
     results = ROOT / "reports" / "tier_results.yaml"
     if not results.is_file():

@@ -1,8 +1,9 @@
 """`oodrl new` (SPEC §18): your agent, your environment, a pipeline in one command.
 
-The README's "Benchmark your own agent" block is followed literally in a throw-away git + DVC
-copy of the project, on tiny params: a PPO agent trained here on MountainCarContinuous-v0 (not
-in the suite) under VecNormalize, converted by `oodrl new`, then `dvc repro` and `oodrl show`.
+The "Benchmark your own agent" block of docs/how-to/your-agent.md is followed literally in a
+throw-away git + DVC copy of the project, on tiny params: a PPO agent trained here on
+MountainCarContinuous-v0 (not in the suite) under VecNormalize, converted by `oodrl new`, then `dvc
+repro` and `oodrl show`.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from test_readme import README, blocks, parse_sections, shell_commands
+from test_readme import DOCS, blocks, section, shell_commands
 from typer.testing import CliRunner
 
 from oodrl.cli import app
@@ -23,8 +24,8 @@ from oodrl.config import read_params_data
 from oodrl.suite.new import new_pipeline
 from oodrl.testing.pipeline import TINY_TIERS, copy_project, run
 
-SECTION = "Benchmark your own agent"
-#: Appended to the README's `oodrl new`: streams of 40 steps, a 2-episode report.
+SECTION = (DOCS / "how-to" / "your-agent.md", "Benchmark your own agent")
+#: Appended to the how-to's `oodrl new`: streams of 40 steps, a 2-episode report.
 TINY = ["--T", "40", "--episodes", "2"]
 #: The tiny protocol: a fault every environment has, one only MuJoCo ones have.
 INJECTORS = ["stuck_actuator", "dynamics_scaling"]
@@ -32,7 +33,7 @@ DYNAMICS = ("action_conditioned_dynamics", "dynamics_scaling", "gradual_drift")
 
 
 def readme_commands() -> list[str]:
-    (script,) = blocks(parse_sections(README.read_text())[SECTION], "bash")
+    (script,) = blocks(section(SECTION), "bash")
     return shell_commands(script)
 
 
@@ -64,7 +65,7 @@ def train_agent(path: Path, env_id: str) -> None:
 
 @pytest.fixture(scope="module")
 def followed(tmp_path_factory, repo_root) -> tuple[Path, dict[str, str]]:
-    """The README's three commands in a fresh project; the output of each."""
+    """The how-to's three commands in a fresh project; the output of each."""
     repo = copy_project(repo_root, tmp_path_factory.mktemp("new") / "repo", tiny_params(repo_root))
     commands = readme_commands()
     new = shlex.split(commands[0])

@@ -1,8 +1,10 @@
-"""The README's instructions, followed literally in a fresh copy of the project, do what it says.
+"""The README's and the docs' instructions, followed literally in a fresh copy of the project,
+do what they say; the README stays a first screen.
 
-The blocks are parsed out of README.md at test time (by section heading and fence language), so
-an edit to the README is what gets tested. The walk-through runs on tiny params (ci/params.yaml
-with one injector and only the detectors the README's knobs name) to stay around a minute.
+The blocks are parsed out of the Markdown files at test time (by section heading and fence
+language), so an edit to a page is what gets tested. The walk-through runs on tiny params
+(ci/params.yaml with one injector and only the detectors the knobs name) to stay around a
+minute. The sections it follows live on the docs pages the constants below name.
 """
 
 from __future__ import annotations
@@ -21,16 +23,23 @@ from oodrl.config import read_params_data
 from oodrl.io.layout import detector_pipeline, detector_stage
 from oodrl.testing.pipeline import copy_project, lock_hashes, run
 
-README = Path(__file__).resolve().parents[1] / "README.md"
-ADD_DETECTOR = "Add a detector"
-CHANGE_KNOB = "Change a knob, compare runs"
-READING = "Reading the results"
-COMPONENTS = "Components"
-#: Inline `oodrl …` commands the README names that the walk-through runs (cheap, read-only).
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+DOCS = ROOT / "docs"
+GETTING_STARTED = DOCS / "getting-started.md"
+ADD_DETECTOR_PAGE = DOCS / "how-to" / "add-detector.md"
+#: The sections the walk-through follows: (the file that holds it, its heading).
+ADD_DETECTOR = (ADD_DETECTOR_PAGE, "Add a detector")
+CHANGE_KNOB = (GETTING_STARTED, "Change a knob, compare runs")
+READING = (GETTING_STARTED, "Reading the results")
+COMPONENTS = (GETTING_STARTED, "Components")
+#: The pages whose inline `oodrl …` commands the walk-through runs.
+WALKTHROUGH_PAGES = (GETTING_STARTED, ADD_DETECTOR_PAGE)
+#: Inline `oodrl …` commands the pages name that the walk-through runs (cheap, read-only).
 INLINE_COMMANDS = ("list", "check-params", "show")
 
 
-# -- parsing README.md ---------------------------------------------------------------------------
+# -- parsing the Markdown --------------------------------------------------------------------------
 @dataclass(frozen=True)
 class Block:
     language: str
@@ -65,8 +74,20 @@ def parse_sections(markdown: str) -> dict[str, Section]:
             current = sections.setdefault(heading.group(1).strip(), Section("", []))
         else:
             current.prose += line + "\n"
-    assert fence is None, "README.md has an unclosed code fence"
+    assert fence is None, "the Markdown has an unclosed code fence"
     return sections
+
+
+def section(where: tuple[Path, str]) -> Section:
+    """The section under a heading of a Markdown file: `where` is (file, heading)."""
+    path, heading = where
+    sections = parse_sections(path.read_text())
+    assert heading in sections, f"{path.relative_to(ROOT)} has no heading {heading!r}"
+    return sections[heading]
+
+
+def walkthrough_markdown() -> str:
+    return "\n".join(page.read_text() for page in WALKTHROUGH_PAGES)
 
 
 def blocks(section: Section, language: str) -> list[str]:
@@ -155,9 +176,9 @@ def policy_digest(repo: Path) -> str:
     return hashlib.sha256((repo / "models" / "policy.pt").read_bytes()).hexdigest()
 
 
-def readme_knobs(sections: dict[str, Section]) -> dict[str, str]:
+def readme_knobs() -> dict[str, str]:
     knobs: dict[str, str] = {}
-    for script in blocks(sections[CHANGE_KNOB], "bash"):
+    for script in blocks(section(CHANGE_KNOB), "bash"):
         for command in shell_commands(script):
             knobs.update(set_params(command))
     return knobs
@@ -196,14 +217,14 @@ def add_detector(repo: Path, section: Section) -> list[str]:
     return added
 
 
-def check_inline_commands(repo: Path, markdown: str, sections: dict[str, Section]) -> None:
-    """`oodrl list` prints every component the README lists; check-params passes; `oodrl show`
-    prints every benchmarked detector, the README's new one included."""
+def check_inline_commands(repo: Path, markdown: str) -> None:
+    """`oodrl list` prints every component the docs list; check-params passes; `oodrl show`
+    prints every benchmarked detector, the walk-through's new one included."""
     commands = inline_oodrl_commands(markdown)
     for name in INLINE_COMMANDS:
-        assert name in commands, f"the README names no `oodrl {name}` command"
+        assert name in commands, f"the docs name no `oodrl {name}` command"
     listed = sh(repo, commands["list"])
-    components = re.findall(r"`([a-z][a-z0-9_]+)`", sections[COMPONENTS].prose)
+    components = re.findall(r"`([a-z][a-z0-9_]+)`", section(COMPONENTS).prose)
     assert components, "the Components section lists no component names"
     for component in components:
         assert component in listed, f"`oodrl list` does not print {component}"
@@ -261,14 +282,13 @@ def check_detector_knob(command: str, knobs: dict[str, str], ran: list[str]) -> 
         assert not others, f"`{command}` re-ran stages of other components: {others}"
 
 
-# -- tests ---------------------------------------------------------------------------------------
-def test_readme_has_the_blocks_this_test_follows():
-    sections = parse_sections(README.read_text())
-    add = sections[ADD_DETECTOR]
+# -- tests: the walk-through ---------------------------------------------------------------------
+def test_the_docs_have_the_blocks_this_test_follows():
+    add = section(ADD_DETECTOR)
     assert len(blocks(add, "python")) == 1 and len(blocks(add, "yaml")) == 1
     assert blocks(add, "bash"), "Add a detector shows no commands"
-    assert readme_knobs(sections), "Change a knob shows no `dvc exp run -S` command"
-    assert set(INLINE_COMMANDS) <= set(inline_oodrl_commands(README.read_text()))
+    assert readme_knobs(), "Change a knob shows no `dvc exp run -S` command"
+    assert set(INLINE_COMMANDS) <= set(inline_oodrl_commands(walkthrough_markdown()))
 
 
 def test_shell_commands_keep_a_quoted_argument_across_lines():
@@ -291,10 +311,10 @@ def test_kde_bandwidth_knob_differs_from_the_default_runs_bandwidth(repo_root):
     from oodrl.detectors.kde import bandwidth_of
     from oodrl.envs import ENVIRONMENTS
 
-    knobs = readme_knobs(parse_sections(README.read_text()))
+    knobs = readme_knobs()
     values = [float(v) for k, v in knobs.items() if k == "detectors.kde_density.bandwidth"]
     if not values:
-        pytest.skip("the README turns no kde_density bandwidth knob")
+        pytest.skip("the docs turn no kde_density bandwidth knob")
     params = load_params(repo_root / "params.yaml")
     kde = params.detectors["kde_density"]
     assert kde.get("features", "state") == "state"
@@ -307,27 +327,191 @@ def test_kde_bandwidth_knob_differs_from_the_default_runs_bandwidth(repo_root):
 
 
 @pytest.mark.slow
-def test_following_the_readme_in_a_fresh_project(tmp_path, repo_root):
+def test_following_the_docs_in_a_fresh_project(tmp_path, repo_root):
     if not (repo_root / "models" / "policy.pt").is_file():
         pytest.skip("models/policy.pt is not committed yet")
-    markdown = README.read_text()
-    sections = parse_sections(markdown)
-    repo = copy_project(
-        repo_root, tmp_path / "project", tiny_params(repo_root, readme_knobs(sections))
-    )
+    repo = copy_project(repo_root, tmp_path / "project", tiny_params(repo_root, readme_knobs()))
     policy = policy_digest(repo)
 
-    added = add_detector(repo, sections[ADD_DETECTOR])
+    added = add_detector(repo, section(ADD_DETECTOR))
     results = yaml.safe_load((repo / "reports" / "results.yaml").read_text())
     for detector in added:
         assert any(r["detector"] == detector for r in results["records"]), detector
     status = run(repo, "dvc", "status", "-q", "--with-deps", "dvc.yaml", check=False)
-    assert status.returncode == 0, "the README's repro left stages pending"
-    check_inline_commands(repo, markdown, sections)
-    check_figures_and_plots(repo, sections[READING])
+    assert status.returncode == 0, "the docs' repro left stages pending"
+    check_inline_commands(repo, walkthrough_markdown())
+    check_figures_and_plots(repo, section(READING))
 
     # A fresh clone's HEAD holds a complete run: the baseline `dvc metrics diff` compares with.
     run(repo, "git", "add", "-A")
-    run(repo, "git", "commit", "-q", "-m", "the README's detector added and run")
-    change_knobs(repo, sections[CHANGE_KNOB])
+    run(repo, "git", "commit", "-q", "-m", "the docs' detector added and run")
+    change_knobs(repo, section(CHANGE_KNOB))
     assert policy_digest(repo) == policy
+
+
+# -- tests: the README is a first screen --------------------------------------------------------
+#: At most this many lines (SPEC §25).
+README_MAX_LINES = 250
+#: The first screen: the run command and the leaderboard's headline numbers lie within it.
+FIRST_SCREEN = 40
+#: README.md's sections, in this order (SPEC §25); the quickstart's heading is exact, since the
+#: API's tests find its block by it.
+README_SECTIONS = (
+    "Run it",
+    "What it measures",
+    "What it finds: the `mild` tier",
+    "Python quickstart",
+    "Commands",
+    "Documentation",
+    "Citing",
+)
+QUICKSTART = "Python quickstart"
+QUICKSTART_MAX_LINES = 12
+#: Markdown files whose relative links must resolve; the docs pages among them must link only
+#: inside docs/ (the site is built from it alone).
+LINKED_FILES = (
+    README,
+    ROOT / "CHANGELOG.md",
+    ROOT / "CONTRIBUTING.md",
+    DOCS / "index.md",
+    GETTING_STARTED,
+    DOCS / "performance.md",
+    *sorted((DOCS / "concepts").glob("*.md")),
+    *sorted((DOCS / "how-to").glob("*.md")),
+)
+
+
+#: Pages docs/hooks/generate.py writes when the site is built (never in git): a docs page may
+#: link them, and `mkdocs build --strict` checks those links.
+GENERATED_PAGES = frozenset(
+    DOCS / page
+    for page in (
+        "reference/cli.md",
+        "reference/params.md",
+        "results/leaderboard.md",
+        "results/leaderboard-tables.md",
+    )
+)
+
+
+def leaderboard() -> dict[str, Any]:
+    import json
+
+    from oodrl.report.readme import LEADERBOARD
+
+    return json.loads((ROOT / LEADERBOARD).read_text())
+
+
+def test_readme_is_at_most_250_lines_and_opens_on_the_command_and_the_ranking():
+    lines = README.read_text().splitlines()
+    assert len(lines) <= README_MAX_LINES, f"README.md has {len(lines)} lines"
+    first = "\n".join(lines[:FIRST_SCREEN])
+    from test_project import _command_after
+
+    assert _command_after(README.read_text(), "<!-- run-command -->") in first
+    # The lead tier's top detector and its IQM with CI, as the leaderboard computed them.
+    board = leaderboard()
+    scores = board["iqm"][board["lead"]["metric"]][board["lead"]["tier"]]
+    top = max(scores, key=lambda d: scores[d]["value"])
+    entry = scores[top]
+    figure = f"{entry['value']:.3f} [{entry['ci_low']:.3f}, {entry['ci_high']:.3f}]"
+    assert f"`{top}`" in first and figure in first, (top, figure)
+
+
+def test_readme_sections_come_in_their_order():
+    headings = [h for h in parse_sections(README.read_text()) if h and h != "oodrl"]
+    assert headings == list(README_SECTIONS)
+
+
+def test_the_python_quickstart_is_short_and_the_same_in_the_docs():
+    (readme_block,) = blocks(parse_sections(README.read_text())[QUICKSTART], "python")
+    assert len(readme_block.splitlines()) <= QUICKSTART_MAX_LINES
+    assert "import oodrl" in readme_block and "oodrl.evaluate(" in readme_block
+    assert 'oodrl.load_results("pipeline/suite")' in readme_block
+    (docs_block,) = blocks(section((GETTING_STARTED, QUICKSTART)), "python")
+    assert docs_block == readme_block
+
+
+def test_every_generated_table_is_what_its_source_generates():
+    """README.md's and the home page's leaderboard headline is the committed leaderboard's;
+    getting started's table is the root pipeline's committed reports/headline.md."""
+    from oodrl.report.readme import (
+        LEADERBOARD_START,
+        START,
+        generated_block,
+        leaderboard_headline,
+    )
+
+    headline = leaderboard_headline(leaderboard())
+    for page in (README, DOCS / "index.md"):
+        block = generated_block(page.read_text(), LEADERBOARD_START)
+        assert block == headline, f"{page.relative_to(ROOT)} is stale: `oodrl readme-table`"
+    table = (ROOT / "reports" / "headline.md").read_text().strip()
+    assert generated_block(GETTING_STARTED.read_text(), START) == table
+
+
+def test_readme_table_rewrites_a_stale_block_and_refuses_a_file_without_its_markers(tmp_path):
+    from typer.testing import CliRunner
+
+    from oodrl.cli import app
+    from oodrl.report.readme import LEADERBOARD, LEADERBOARD_START, generated_block
+
+    page = tmp_path / "page.md"
+    stale = README.read_text().replace("| 1 | `", "| 1 | `stale", 1)
+    page.write_text(stale)
+    source = str(ROOT / LEADERBOARD)
+    result = CliRunner().invoke(app, ["readme-table", source, "--readme", str(page)])
+    assert result.exit_code == 0, result.output
+    assert page.read_text() == README.read_text()
+
+    # A pipeline's table into a file that holds only the leaderboard's block: one line.
+    headline = str(ROOT / "reports" / "headline.md")
+    result = CliRunner().invoke(app, ["readme-table", headline, "--readme", str(page)])
+    assert result.exit_code != 0
+    assert "no <!-- headline:start --> ... <!-- headline:end --> markers" in result.output
+    assert page.read_text() == README.read_text(), "a refused rewrite changed the file"
+    assert generated_block(page.read_text(), LEADERBOARD_START) is not None
+
+
+def _slug(heading: str) -> str:
+    """Python-Markdown's toc anchor of a heading (MkDocs' default), code spans as their text."""
+    import unicodedata
+
+    text = unicodedata.normalize("NFKD", heading.replace("`", ""))
+    text = re.sub(r"[^\w\s-]", "", text.encode("ascii", "ignore").decode()).strip().lower()
+    return re.sub(r"[-\s]+", "-", text)
+
+
+def test_relative_links_resolve_and_the_docs_link_only_inside_docs():
+    link = re.compile(r"\]\(([^)\s]+)\)")
+    problems = []
+    for page in LINKED_FILES:
+        text = re.sub(r"```.*?```", "", page.read_text(), flags=re.DOTALL)
+        for target in link.findall(text):
+            if re.match(r"[a-z]+:", target) or target.startswith("#"):
+                continue
+            path, _, anchor = target.partition("#")
+            resolved = (page.parent / path).resolve()
+            where = f"{page.relative_to(ROOT)}: {target}"
+            if page.is_relative_to(DOCS) and resolved in GENERATED_PAGES:
+                continue
+            if not resolved.exists():
+                problems.append(f"{where} (no such file)")
+            elif page.is_relative_to(DOCS) and not resolved.is_relative_to(DOCS):
+                problems.append(f"{where} (outside docs/: the site cannot link it)")
+            elif anchor and resolved.suffix == ".md":
+                headings = parse_sections(resolved.read_text())
+                if anchor not in {_slug(h) for h in headings}:
+                    problems.append(f"{where} (no heading with that anchor)")
+    assert not problems, "\n".join(problems)
+
+
+def test_citation_cff_is_cff_1_2_0_by_the_oodrl_developers():
+    import tomllib
+
+    citation = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    assert citation["cff-version"] == "1.2.0"
+    assert citation["authors"] == [{"name": "The oodrl developers"}]
+    assert {"message", "title", "type"} <= set(citation)
+    version = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert str(citation["version"]) == version

@@ -1,7 +1,7 @@
 """Recorded data (SPEC §18): a Minari dataset as the clean data of a post-hoc pipeline.
 
 Every dataset here is a real Minari dataset, written by minari into a datasets folder under
-tmp_path (MINARI_DATASETS_PATH) from random rollouts of a Gymnasium environment. The README's
+tmp_path (MINARI_DATASETS_PATH) from random rollouts of a Gymnasium environment. The how-to's
 recipe is followed literally in a throw-away git + DVC copy of the project, on tiny params, with
 a stand-in of the dataset it names.
 """
@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import yaml
 from test_new import tiny_params
-from test_readme import README, blocks, parse_sections, shell_commands
+from test_readme import DOCS, blocks, section, shell_commands
 from typer.testing import CliRunner
 
 from oodrl.cli import app
@@ -26,8 +26,8 @@ from oodrl.errors import ConfigError
 from oodrl.suite.new import new_pipeline
 from oodrl.testing.pipeline import copy_project, run
 
-SECTION = "Recorded data: a Minari dataset"
-#: Appended to the README's `oodrl new`: streams of 40 steps.
+SECTION = (DOCS / "how-to" / "your-agent.md", "Recorded data: a Minari dataset")
+#: Appended to the how-to's `oodrl new`: streams of 40 steps.
 TINY = ["--T", "40"]
 #: Two post-hoc faults and one that needs a simulator.
 INJECTORS = ["gaussian_state_noise", "observation_delay", "stuck_actuator"]
@@ -39,11 +39,11 @@ SIMULATED = {
 }  # fmt: skip
 #: Simulated sets a detector file's scoring stages read in a simulated pipeline.
 SIMULATED_SETS = ("data/calibration.zarr", "data/audit.zarr", "data/twins.zarr", "data/tiers/")
-HOPPER = "mujoco/hopper/medium-v0"  # the README's dataset, here a random stand-in
+HOPPER = "mujoco/hopper/medium-v0"  # the how-to's dataset, here a random stand-in
 
 
 def readme_commands() -> list[str]:
-    (script,) = blocks(parse_sections(README.read_text())[SECTION], "bash")
+    (script,) = blocks(section(SECTION), "bash")
     return shell_commands(script)
 
 
@@ -112,7 +112,7 @@ def created(dataset_id: str, buffers: list, **kwargs):
 
 @pytest.fixture(scope="module")
 def minari_root(tmp_path_factory) -> Path:
-    """A Minari datasets folder: the README's Hopper stand-in and some that oodrl refuses."""
+    """A Minari datasets folder: the how-to's Hopper stand-in and some that oodrl refuses."""
     import gymnasium as gym
 
     root = tmp_path_factory.mktemp("minari")
@@ -273,7 +273,7 @@ def test_bad_input_is_one_line_and_leaves_nothing(minari_env, root, arguments, m
     assert not (root / "pipeline").exists() or not any((root / "pipeline").iterdir())
 
 
-# -- the README's recipe, in a git + DVC copy of the project ------------------------------------
+# -- the how-to's recipe, in a git + DVC copy of the project -----------------------------------
 @pytest.mark.slow
 def test_the_readme_recipe_benchmarks_recorded_data(minari_root, tmp_path, repo_root):
     from oodrl.io.store import read_trajectories

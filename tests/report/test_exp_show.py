@@ -1,13 +1,13 @@
-"""The README's recipe for comparing runs fits a terminal, in a real DVC repository.
+"""The docs' recipe for comparing runs fits a terminal, in a real DVC repository.
 
 The repository has the project's params.yaml (so `dvc exp show` sees all of its params), a
 collection stage per injector writing a store that changes with the headline severity (so that,
 as in the real pipeline, the changed dependencies' hashes are columns DVC would show), and a
 stage that writes reports/metrics.json with `metrics_json` from the realistic fake results,
 their matched AUROCs scaled by the headline severity so that experiments differ. The commands
-are read from the README's "Compare runs in a terminal" section and run at 100 columns with
-their output captured: no line may be wider, no cell may be cut to "…", and the table shows the
-followed detectors and the changed param and nothing else.
+are read from the "Compare runs in a terminal" section of docs/getting-started.md and run at
+100 columns with their output captured: no line may be wider, no cell may be cut to "…", and
+the table shows the followed detectors and the changed param and nothing else.
 """
 
 from __future__ import annotations
@@ -41,10 +41,10 @@ with open("reports/metrics.json", "w") as handle:
 
 
 def recipe(readme: Path) -> list[str]:
-    """The commands of the first bash block of the README's section, comments removed."""
+    """The commands of the first bash block of the page's section, comments removed."""
     text = readme.read_text(encoding="utf-8").split(SECTION, 1)[1]
     block = re.search(r"```bash\n(.*?)```", text, re.DOTALL)
-    assert block, f"README.md has no bash block under {SECTION!r}"
+    assert block, f"{readme.name} has no bash block under {SECTION!r}"
     return [shlex.join(shlex.split(line, comments=True)) for line in block.group(1).splitlines()]
 
 
@@ -85,7 +85,7 @@ def experiment_repo(results, repo_root, tmp_path) -> Path:
 
 @pytest.mark.slow
 def test_the_compare_runs_recipe_fits_a_terminal(experiment_repo, repo_root):
-    commands = recipe(repo_root / "README.md")
+    commands = recipe(repo_root / "docs" / "getting-started.md")
     assert [c.split()[:3] for c in commands] == [
         ["dvc", "exp", "run"],
         ["dvc", "exp", "diff"],
