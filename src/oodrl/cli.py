@@ -860,9 +860,17 @@ def main() -> None:
     except Exception as error:
         if debug:
             raise
+        # A full disk, a refused permission, a read-only filesystem, too many open files: the
+        # machine's fault, not oodrl's, named with its path and what to do (oodrl.faults); also
+        # when a library wraps the OSError in an exception of its own.
+        from oodrl.faults import machine_fault
+
+        fault = machine_fault(error)
         typer.echo(
-            f"error: internal error, {type(error).__name__}: {one_line(str(error))} (a bug in "
-            f"oodrl or a plugin; {DEBUG_VARIABLE}=1 shows the traceback)",
+            f"error: {one_line(fault)}"
+            if fault
+            else f"error: internal error, {type(error).__name__}: {one_line(str(error))} (a bug "
+            f"in oodrl or a plugin; {DEBUG_VARIABLE}=1 shows the traceback)",
             err=True,
         )
         sys.exit(1)

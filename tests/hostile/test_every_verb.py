@@ -1,9 +1,12 @@
 """SPEC §22's one rule, over every CLI verb: a usage error is one line and exit 2, an error
-oodrl did not expect is one line and exit 1 (its traceback only with OODRL_DEBUG=1), and a
-signal unwinds with one line and exit 128 + its number."""
+oodrl did not expect is one line and exit 1 (its traceback only with OODRL_DEBUG=1), a fault of
+the machine (a full disk, a refused permission, a read-only filesystem, too many open files) is
+one line naming the path and what to do and exit 1, and a signal unwinds with one line and exit
+128 + its number."""
 
 from __future__ import annotations
 
+import functools
 import os
 import signal
 import subprocess
@@ -14,7 +17,9 @@ import pytest
 import typer.main
 from hostile_cli import OODRL, assert_one_line_error, oodrl
 
+from oodrl import cli
 from oodrl.cli import app
+from oodrl.faults import FAULTS
 
 
 def _verbs(group, prefix=()) -> list[tuple[str, ...]]:
@@ -99,3 +104,67 @@ def test_a_signal_is_one_line_and_its_exit_code(sig, tmp_path, repo_root):
     stdout, stderr = process.communicate(timeout=60)
     done = subprocess.CompletedProcess(args, process.returncode, stdout, stderr)
     assert_one_line_error(done, 128 + sig.value, f"interrupted ({sig.name})")
+
+
+# -- faults of the machine (issue 55) -------------------------------------------------------------
+def _registered(typer_app) -> list:
+    """Every command's registration (its callback), in the app and its groups."""
+    found = list(typer_app.registered_commands)
+    for group in typer_app.registered_groups:
+        found += _registered(group.typer_instance)
+    return found
+
+
+def _required_args(verb: tuple[str, ...]) -> list[str]:
+    """A value for each required argument and option of a verb (all take text; the callback
+    that would read them is replaced)."""
+    command = typer.main.get_command(app)
+    for word in verb:
+        command = command.commands[word]
+    args: list[str] = []
+    for param in command.params:
+        if not param.required:
+            continue
+        args += [param.opts[0], "x"] if param.param_type_name == "option" else ["x"]
+    return args
+
+
+#: The faults, one a verb in turn: every verb meets one, every fault several verbs.
+MACHINE_FAULTS = sorted(FAULTS)
+
+
+@pytest.mark.parametrize("verb", VERBS, ids=" ".join)
+def test_a_fault_of_the_machine_is_one_line_naming_the_path_and_exit_1(
+    verb, tmp_path, monkeypatch, capsys
+):
+    """Whatever a verb is doing when the disk fills or a write is refused, the OSError that
+    reaches the entry point is named with its path and what to do: exit 1, not an internal error
+    (SPEC §22). The verb's own function is replaced by one raising that OSError, as a write of
+    it would, so that every verb is checked in milliseconds; tests/faults/ meet real ones."""
+    number = MACHINE_FAULTS[VERBS.index(verb) % len(MACHINE_FAULTS)]
+    path = str(tmp_path / "out" / "store.zarr")
+
+    def failing(function):
+        @functools.wraps(function)
+        def write(*args, **kwargs):
+            raise OSError(number, os.strerror(number), path)
+
+        return write
+
+    for info in _registered(app):
+        monkeypatch.setattr(info, "callback", failing(info.callback))
+    monkeypatch.setattr(sys, "argv", ["oodrl", *verb, *_required_args(verb)])
+    monkeypatch.delenv("OODRL_DEBUG", raising=False)
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+    hook = sys.unraisablehook
+    try:
+        with pytest.raises(SystemExit) as ended:
+            cli.main()
+    finally:
+        for signum, handler in handlers.items():
+            signal.signal(signum, handler)
+        sys.unraisablehook = hook
+    out, err = capsys.readouterr()
+    assert ended.value.code == 1, err
+    assert err == f"error: {path}: {FAULTS[number]}\n", err
+    assert "Traceback" not in out + err and not (tmp_path / "out").exists()

@@ -41,15 +41,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from oodrl.errors import ConfigError, ContractError, OodrlError, PolicyError
-from oodrl.suite.scratch import remove_dead
+from oodrl.suite.scratch import STAGING_PATTERN, remove_dead, remove_dead_runs
 
 if TYPE_CHECKING:
     from oodrl.config import Params
     from oodrl.core.adapter import EnvironmentAdapter
 
 NAME_PATTERN = re.compile(r"[a-z][a-z0-9_]*")
-#: The staging folder of `pipeline/NAME` while `oodrl new` (process `pid`) makes it.
-STAGING_PATTERN = re.compile(r"\.(?P<name>[a-z][a-z0-9_]*)\.new-(?P<pid>[0-9]+)")
 #: The signals that end `oodrl new` with its staging folder removed. SIGINT raises
 #: KeyboardInterrupt already; these two raise SystemExit meanwhile (`_signals_end_staging`).
 ENDING_SIGNALS = (signal.SIGTERM, signal.SIGHUP)
@@ -90,7 +88,33 @@ def new_pipeline(
     episodes: int = 10,
     seed: int = 0,
 ) -> NewPipeline:
-    """Make `root/pipeline/NAME/` (see the module docstring); a one-line error otherwise."""
+    """Make `root/pipeline/NAME/` (see the module docstring); a one-line error otherwise. One
+    `oodrl new` (or suite run) at a time per checkout (`oodrl.suite.checkout_lock`); the
+    temporary folders of dead runs go first."""
+    from oodrl.suite.checkout_lock import checkout_lock
+
+    with checkout_lock(root, "new"):
+        remove_dead_runs(root)
+        return _new_pipeline(
+            root, name, env_id, policy=policy, train=train, dataset=dataset, flatten=flatten,
+            steps=steps, T=T, episodes=episodes, seed=seed,
+        )  # fmt: skip
+
+
+def _new_pipeline(
+    root: Path,
+    name: str,
+    env_id: str | None,
+    *,
+    policy: str | None,
+    train: str | None,
+    dataset: str | None,
+    flatten: bool,
+    steps: int,
+    T: int | None,  # noqa: N803 - the protocol's name
+    episodes: int,
+    seed: int,
+) -> NewPipeline:
     from oodrl.suite.pipeline import ENVIRONMENTS_DIR
 
     directory = root / ENVIRONMENTS_DIR / name

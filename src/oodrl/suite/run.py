@@ -54,7 +54,14 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from oodrl.errors import ConfigError, OodrlError
-from oodrl.suite.scratch import remove_dead, working_folder
+from oodrl.suite.scratch import (
+    DEAD_TASK_FOLDER,
+    DVC_CONFIG_FOLDER,
+    TASK_FOLDER,
+    remove_dead,
+    remove_dead_runs,
+    working_folder,
+)
 
 #: A task whose node dies runs again on another node up to this many times.
 RAY_MAX_RETRIES = 3
@@ -66,17 +73,15 @@ REMOTE_ANSWER_S = 10
 STOP_GRACE_S = 10
 
 
-#: The temporary folders of a task (its clone) and of a run's DVC config, named with their
-#: process's pid: a task killed with its node leaves them, and the next task on that machine
-#: removes them (`oodrl.suite.scratch`).
-TASK_FOLDER, DVC_CONFIG_FOLDER = "oodrl-suite-", "oodrl-dvc-config-"
-DEAD_TASK_FOLDER = re.compile(rf"(?:{TASK_FOLDER}|{DVC_CONFIG_FOLDER})(?P<pid>[0-9]+)-\w+")
-
-
+#: A task's clone and a run's DVC config live in temporary folders named with their process's
+#: pid (`oodrl.suite.scratch`: TASK_FOLDER, DVC_CONFIG_FOLDER): a run killed (SIGKILL, a crash)
+#: or a task killed with its node leaves them, and the next run or task on that machine removes
+#: them, whichever verb it is.
 def remove_dead_task_folders() -> None:
-    """Remove the task folders killed runs left on this machine. Called where this process has
-    none of its own yet (a run's start, a Ray task's start): local tasks are threads of one
-    process, and `remove_dead` takes a folder of this process's pid for a reused pid's."""
+    """Remove the temporary folders killed runs left on this machine. Called where this process
+    has none of its own yet (a run's start, a Ray task's start, `oodrl new`'s): local tasks are
+    threads of one process, and `remove_dead` takes a folder of this process's pid for a reused
+    pid's."""
     remove_dead(Path(tempfile.gettempdir()), DEAD_TASK_FOLDER)
 
 
@@ -172,13 +177,37 @@ def build_pipeline(
         if shared_cache:
             _run(project, env, "dvc", "cache", "dir", "--local", shared_cache)
         if remote:  # what the remote has, in one pull (why: the module's docstring)
-            _run(project, env, "dvc", "pull", "--allow-missing", "-q")
+            _from_remote(project, env, remote, "pull", "--allow-missing", "-q", check=True)
         chosen = tuple(targets[pipeline]) if targets is not None else ()
-        done = _run(project, env, "dvc", "repro", *(["--pull"] if remote else []), *chosen)
+        done = _from_remote(project, env, remote, "repro", *(["--pull"] if remote else []),
+                            *chosen)  # fmt: skip
         if remote and remote.writable:
             _push(project, env)
         files = checkout_files(project)
     return time.perf_counter() - start, ran_stages(done.stdout), files
+
+
+def _from_remote(
+    project: Path, env: dict[str, str], remote: Remote | None, *args: str, check: bool = False
+) -> subprocess.CompletedProcess:
+    """A DVC command that may fetch from the remote; where it fails (or always, with `check`:
+    `dvc pull --allow-missing` passes over an object that arrived corrupt in silence), an object
+    the remote failed to deliver intact is named instead (`oodrl.suite.remote_check`)."""
+    from oodrl.suite.remote_check import bad_object
+
+    def named() -> str | None:
+        environment = {**task_environment(Path(_git_root(project))), **env}
+        return bad_object(project, environment, remote, _spawn)
+
+    try:
+        done = _run(project, env, "dvc", *args)
+    except SuiteRunError:
+        if remote is not None and not _STOPPING.is_set() and (bad := named()):
+            raise SuiteRunError(bad) from None
+        raise
+    if remote is not None and check and (bad := named()):
+        raise SuiteRunError(bad)
+    return done
 
 
 def checkout_files(project: Path) -> dict[str, bytes]:
@@ -255,7 +284,9 @@ def _dvc_config(remote: Remote | None) -> Iterator[dict[str, str]]:
         config = ConfigObj(os.path.join(system_config_dir(), "config"))
         config.filename = os.path.join(directory, "config")
         config.setdefault("core", {})["remote"] = remote.name
-        config[f'remote "{remote.name}"'] = remote.options
+        # verify: DVC hashes every object it fetches and keeps none whose hash is not its name
+        # (it trusts an HTTP remote's bytes otherwise: oodrl.suite.remote_check).
+        config[f'remote "{remote.name}"'] = {**remote.options, "verify": "true"}
         config.write()
         yield {"DVC_SYSTEM_CONFIG_DIR": directory}
 
@@ -266,10 +297,29 @@ def _run(cwd: Path, env: dict[str, str], *args: str) -> subprocess.CompletedProc
     repo = Path(_git_root(cwd))
     done = _spawn(command, cwd, {**task_environment(repo), **env})
     if done.returncode != 0:
-        lines = [line.strip() for line in (done.stderr + done.stdout).splitlines() if line.strip()]
-        why = next((line for line in lines if line.startswith(("ERROR", "error"))), None)
-        raise SuiteRunError(f"`{' '.join(args[:2])}` in {cwd.name}: {why or (lines or [''])[-1]}")
+        raise SuiteRunError(f"`{' '.join(args[:2])}` in {cwd.name}: {_why(done, cwd, args)}")
     return done
+
+
+def _why(done: subprocess.CompletedProcess, cwd: Path, args: Sequence[str]) -> str:
+    """A failed command's reason in one line: a fault of the machine it met (a full disk, a
+    refused permission: `oodrl.faults`; named with the path it gives, else the file the command
+    writes or the folder it ran in), else its first error line, else its last line."""
+    from oodrl.faults import fault_in_output
+
+    lines = [line.strip() for line in (done.stderr + done.stdout).splitlines() if line.strip()]
+    why = next((line for line in lines if line.startswith(("ERROR", "error"))), None)
+    written = [arg for arg in args[1:] if args[0] == "git" and os.path.isabs(arg)]  # a bundle
+    where = written[-1] if written else str(cwd)
+    return fault_in_output(done.stderr + done.stdout, where) or why or (lines or [""])[-1]
+
+
+def _task_failure(pipeline: str, error: BaseException) -> SuiteRunError:
+    """A task's exception as the run's one line: the pipeline, then the fault of the machine
+    it met (`oodrl.faults`) or its message."""
+    from oodrl.faults import machine_fault
+
+    return SuiteRunError(f"{pipeline}: {machine_fault(error) or error}")
 
 
 #: The git and DVC processes running now (`_spawn`), each with whether it leads a process group
@@ -386,9 +436,12 @@ def run_suite(
     start = time.perf_counter()
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1. Got {workers} instead.")
-    remove_dead_task_folders()
-    with _ending_processes_on_signals():
-        return _build_suite(root, workers, ray_address, echo, start)
+    from oodrl.suite.checkout_lock import checkout_lock
+
+    with checkout_lock(root, "suite run"):
+        remove_dead_runs(root)
+        with _ending_processes_on_signals():
+            return _build_suite(root, workers, ray_address, echo, start)
 
 
 def _build_suite(
@@ -470,7 +523,8 @@ def _build_suite(
             last_task_ended = time.perf_counter()
             runs.append(replace(built, files={}, restore_seconds=restore(built)))
         began = time.perf_counter()
-        done = _run(root / SUITE_DIR, env, "dvc", "repro", *(["--pull"] if remote else []))
+        done = _from_remote(root / SUITE_DIR, env, remote, "repro",
+                            *(["--pull"] if remote else []))  # fmt: skip
         head_ran = [f"{SUITE_DIR.as_posix()}:{stage}" for stage in ran_stages(done.stdout)]
         leaderboard_seconds = time.perf_counter() - began
         if remote and remote.writable:  # as a task pushes its project: a clone restores it
@@ -495,8 +549,13 @@ def restore_project(
     project = root / built.pipeline
     for name, content in built.files.items():
         atomic_write_bytes(project / name, content)
-    pull = remote and remote.writable  # else the tasks pulled into the shared cache
-    _run(project, env, "dvc", "pull" if pull else "checkout", "--force", "-q")
+    if remote and remote.writable:
+        try:
+            _from_remote(project, env, remote, "pull", "--force", "-q")
+        except SuiteRunError as error:
+            raise SuiteRunError(f"{built.pipeline}: {error}") from None
+    else:  # the tasks pulled into the shared cache
+        _run(project, env, "dvc", "checkout", "--force", "-q")
     return time.perf_counter() - began
 
 
@@ -520,7 +579,7 @@ def _local_tasks(
         }
         for future in as_completed(futures):
             if future.exception() is not None:
-                raise SuiteRunError(f"{futures[future]}: {future.exception()}")
+                raise _task_failure(futures[future], future.exception())
             yield future.result()
     finally:
         # No new pipeline starts; running ones finish (or stop: an interruption ended them).
@@ -569,7 +628,7 @@ def _ray_tasks(
                 for ref in pending:
                     ray.cancel(ref, force=True)
                 cause = getattr(error, "cause", None)
-                raise SuiteRunError(f"{names[ready]}: {cause or error}") from None
+                raise _task_failure(names[ready], cause or error) from None
             yield _finished(echo, names[ready], node, tuple(built))
     finally:
         ray.shutdown()

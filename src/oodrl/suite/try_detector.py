@@ -27,7 +27,6 @@ from __future__ import annotations
 import json
 import re
 import subprocess
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -424,7 +423,9 @@ def try_detector(
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1. Got {workers} instead.")
     start = time.perf_counter()
-    with _ending_processes_on_signals():
+    from oodrl.suite.checkout_lock import checkout_lock
+
+    with checkout_lock(root, "suite try"), _ending_processes_on_signals():
         return _try(root, name, class_path, features, options, workers, echo, start)
 
 
@@ -444,11 +445,11 @@ def _try(root: Path, name: str, class_path: str, features: str | None,
         _run,
         default_remote,
         ran_stages,
-        remove_dead_task_folders,
         restore_project,
     )
+    from oodrl.suite.scratch import TRY_FOLDER, remove_dead_runs, working_folder
 
-    remove_dead_task_folders()
+    remove_dead_runs(root)
     runs = suite_runs(root)
     block = detector_block(class_path, features, options)
     check_name(root, name, runs)
@@ -467,7 +468,7 @@ def _try(root: Path, name: str, class_path: str, features: str | None,
              f"pushing nothing")  # fmt: skip
     _refuse_uncommitted_inputs(root, [".", *runs, SUITE_DIR.as_posix()])
     committed = committed_leaderboard(root)
-    with tempfile.TemporaryDirectory(prefix="oodrl-try-") as scratch:
+    with working_folder(TRY_FOLDER) as scratch:
         staged = stage(root, name, block, runs, Path(scratch), echo)
     prepare_seconds = time.perf_counter() - began
     echo(f"try: {len(runs)} runs; each builds {name}'s fit and scoring stages and its results "
