@@ -187,12 +187,38 @@ def as_detector(obj: Any) -> BaseDetector:
             "detector object)."
         )
     if library_api(obj) is not None:
-        params = obj.get_params(deep=False) if callable(getattr(obj, "get_params", None)) else {}
-        return library_detector_class(type(obj))(features="state", **params)
+        # The arguments the model was given, as a params block would name them (SPEC §17): a
+        # key oodrl reads in its place (HBOS's `alpha`) is refused, never silently taken.
+        block = _given_arguments(obj)
+        detector = library_detector_class(type(obj)).from_params({"features": "state", **block})
+        detector.refuse_shadowed(block)
+        return detector
     raise ConfigError(
         f"detector {type(obj).__name__!r} is no detector object. Allowed: an instance of "
         f"{ALLOWED_CLASSES}."
     )
+
+
+def _given_arguments(model: Any) -> dict[str, Any]:
+    """The constructor arguments of a library model that differ from its class's defaults."""
+    import inspect
+
+    if not callable(getattr(model, "get_params", None)):
+        return {}
+    try:
+        signature = inspect.signature(type(model)).parameters
+    except (TypeError, ValueError):
+        signature = {}
+    given = {}
+    for key, value in model.get_params(deep=False).items():
+        default = signature[key].default if key in signature else inspect.Parameter.empty
+        try:
+            same = default is value or bool(default == value)
+        except Exception:  # an array or another value without one truth value
+            same = False
+        if not same:
+            given[key] = value
+    return given
 
 
 def sized_params(pipeline: Pipeline, size: str, seed: int | None) -> Params:

@@ -1,0 +1,110 @@
+"""oodrl.evaluate (SPEC §25): at a pipeline's own params, a built-in detector's numbers are the
+pipeline's, bit for bit (a tiny pipeline built by `dvc repro` in a throw-away repository); its
+arguments are checked before anything runs, each refusal one line naming what is allowed."""
+
+from __future__ import annotations
+
+import sys
+
+import pandas as pd
+import pytest
+
+import oodrl
+from oodrl.config import load_params, read_params_data
+from oodrl.errors import ConfigError
+from oodrl.protocol.impact import LEVELS
+from oodrl.testing.pipeline import TINY_TIERS, copy_project, repro
+
+DETECTOR = "mahalanobis_distance"
+#: A post-hoc observation fault (live at the tiers) and an online one.
+FAULTS = ["observation_delay", "stuck_actuator"]
+KEYS = ["fault", "tier", "metric"]
+
+
+@pytest.fixture(scope="module")
+def tiny_pipeline(tmp_path_factory, repo_root):
+    """The root pipeline at CI's tiny params (ci/params.yaml; the tests' tiny tier search), one
+    detector and two faults, built up to its tier results."""
+    params = read_params_data(repo_root / "ci" / "params.yaml")
+    params["benchmark"] = {"detectors": [DETECTOR], "injectors": FAULTS}
+    params["tiers"] = {**params["tiers"], **TINY_TIERS}
+    repo = copy_project(repo_root, tmp_path_factory.mktemp("tiny") / "repo", params)
+    repro(repo, "tier_metrics")
+    return repo
+
+
+@pytest.mark.slow
+def test_at_the_pipelines_params_evaluate_gives_the_pipelines_numbers(tiny_pipeline):
+    committed = oodrl.load_results(tiny_pipeline, kind="tiers")
+    assert set(committed.detector) == {DETECTOR} and not committed.empty
+    detector = load_params(tiny_pipeline / "params.yaml", components=False).detector(DETECTOR)
+    path = list(sys.path)
+    frame = oodrl.evaluate(
+        detector, env=tiny_pipeline, tiers=list(LEVELS), size="full", name=DETECTOR
+    )
+    assert sys.path == path  # loading the pickled detector added nothing to the caller's path
+    assert detector.threshold_ is not None  # fitted and calibrated in place
+    cells = frame[frame.fault.notna()].sort_values(KEYS).reset_index(drop=True)
+    cells["verified"] = cells["verified"].astype(bool)  # object beside the cost rows' None
+    pd.testing.assert_frame_equal(
+        cells, committed.sort_values(KEYS).reset_index(drop=True), check_exact=True
+    )
+    cost = frame[frame.fault.isna()].set_index("metric").value
+    assert cost["step_us_p99"] >= cost["step_us_median"] > 0 and cost["fit_s"] > 0
+    assert frame.attrs["size"] == "full" and frame.attrs["n_calibration"] == 19
+
+
+@pytest.mark.slow
+def test_a_smaller_size_keeps_the_protocol_with_fewer_streams(tiny_pipeline):
+    frame = oodrl.evaluate(
+        _library_knn(), env=tiny_pipeline, faults=["stuck_actuator"], tiers=list(LEVELS),
+        size="tiny",
+    )  # fmt: skip
+    rates = frame[frame.metric == "detection_rate@100"]
+    assert set(rates.fault) <= {"stuck_actuator"}
+    assert set(rates.n_streams) == {10} and frame.attrs["n_audit"] == 10
+    assert frame.attrs["n_calibration"] == 19  # the fewest the marginal rule allows at α = 0.05
+    assert set(frame.detector) == {"pyod.models.knn:KNN"}
+
+
+def _library_knn():
+    from pyod.models.knn import KNN
+
+    return KNN(n_neighbors=3)
+
+
+def test_a_library_model_is_wrapped_as_the_suite_wraps_its_class():
+    from pyod.models.knn import KNN
+
+    from oodrl.api.evaluation import as_detector
+    from oodrl.detectors.library import LibraryDetector
+
+    wrapped = as_detector(KNN(n_neighbors=7))
+    assert isinstance(wrapped, LibraryDetector) and wrapped.features == "state"
+    assert wrapped.library_params["n_neighbors"] == 7
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        ({"size": "huge"}, "size 'huge' is not an evaluation size. Allowed: full, small, tiny."),
+        ({"tiers": ["headline"]}, "tiers ['headline']: not impact tiers. Allowed: benign, mild, "
+         "moderate, severe."),
+        ({"faults": ["meteor"]}, "faults ['meteor']: not faults of this pipeline. Allowed: "
+         "gaussian_state_noise, "),
+        ({"env": "mars"}, "env 'mars': no such file or directory. Allowed: a pipeline "),
+        ({"detector": dict}, "detector dict is a class; pass an instance of it"),
+        ({"detector": object()}, "detector 'object' is no detector object. Allowed: an instance "
+         "of an oodrl detector class"),
+        ({"faults": ["action_conditioned_dynamics"]}, "no fault of "),
+    ],
+)  # fmt: skip
+def test_wrong_arguments_are_one_line_before_anything_runs(monkeypatch, arguments, message):
+    from oodrl.detectors.mahalanobis import MahalanobisDistance
+
+    monkeypatch.delenv("OODRL_EVALUATE_SIZE", raising=False)
+    arguments = {"detector": MahalanobisDistance(), "env": "cartpole", **arguments}
+    with pytest.raises(ConfigError) as raised:
+        oodrl.evaluate(**arguments)
+    assert str(raised.value).startswith(message)
+    assert "\n" not in str(raised.value)
