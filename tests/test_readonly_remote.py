@@ -91,7 +91,7 @@ def published(tmp_path_factory) -> tuple[Path, Path]:
 
 
 def clone_with_remote(lab: Path, clone: Path, url: str) -> Path:
-    """A fresh clone whose only remote is `url`, the default (the README's way: config.local)."""
+    """A fresh clone whose only remote is `url`, the default, in config.local (as the how-to)."""
     git(lab.parent, "clone", "-q", str(lab), str(clone))
     dvc(clone, "remote", "add", "--local", "-d", "pub", url)
     return clone
@@ -246,7 +246,7 @@ def test_dvc_repro_allow_missing_runs_a_stage_on_a_directory_it_never_pulled(
 
 
 def test_after_an_edit_dvc_repro_pull_runs_only_the_changed_stage(published, serve, tmp_path):
-    """The README's way after an edit in a fresh clone: `dvc repro --pull` without
+    """The remotes how-to's way after an edit in a fresh clone: `dvc repro --pull` without
     `--allow-missing` pulls every unchanged stage's outputs (impact@x, impact@y) before the
     changed stage (tiers) reads them, and runs that stage alone; the remote stays as it was."""
     lab, remote = published

@@ -64,7 +64,7 @@ def remote(request, tmp_path) -> dict[str, str]:
 
 
 def configure(project: Path, remote: dict[str, str]) -> None:
-    """As the README says: the remote in the project's git-ignored config.local."""
+    """As docs/how-to/remotes.md says: the remote in the project's git-ignored config.local."""
     run(project, "dvc", "remote", "add", "--local", "-f", "-d", "lab", remote["url"])
     for option, value in remote.items():
         if option != "url":

@@ -35,7 +35,7 @@ class Declared(Unnamed):
 
 
 class PluginStyle(Unnamed):
-    """A plugin that writes its own `__init__`, as the README shows."""
+    """A plugin that writes its own `__init__`, as docs/how-to/add-detector.md shows."""
 
     _parameter_constraints = {"width": [Interval(int, 1, None)]}
 

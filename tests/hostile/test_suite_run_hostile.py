@@ -46,7 +46,7 @@ def tiny_suite(repo: Path, command: str) -> Path:
 
 
 def with_remote(repo: Path, url: Path) -> Path:
-    """The remote as the README says: the root's git-ignored config.local, the default."""
+    """The remote as the remotes how-to says: the root's git-ignored config.local, the default."""
     dvc(repo, "remote", "add", "--local", "-d", "lab", str(url))
     return repo
 
