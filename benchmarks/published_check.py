@@ -5,7 +5,7 @@
 
 1. Serves DIR (default: this checkout's DVC cache, which `oodrl suite run` filled) read-only
    over HTTP on loopback (`python -m http.server`: GET and HEAD only), as a lab publishes its
-   suite (README, "Publishing a suite read-only").
+   suite (docs/how-to/remotes.md).
 2. Clones HEAD into a temporary directory with an empty DVC cache; every DVC project of the
    clone (the root, each `pipeline/<env>/`, `pipeline/suite`) gets the HTTP URL as its default
    remote (`dvc remote add --local`, so no tracked file changes).
@@ -19,7 +19,7 @@
    for any edit of params.yaml). Not `--allow-missing` here: with it DVC skips an unchanged
    stage whose outputs are missing instead of pulling them, and a stage that must run then
    finds a directory several stages fill (`scores`, `data/impact`) absent, which `--pull` cannot
-   fetch as a whole (README, "Publishing a suite read-only").
+   fetch as a whole (docs/how-to/remotes.md).
 5. `--suite-run`: a second fresh clone, the HTTP remote as the root's default remote only, and
    `oodrl suite run --workers 2`: the stages its tasks ran (none) and `git status --porcelain`.
 
