@@ -108,3 +108,24 @@ def test_wrong_arguments_are_one_line_before_anything_runs(monkeypatch, argument
         oodrl.evaluate(**arguments)
     assert str(raised.value).startswith(message)
     assert "\n" not in str(raised.value)
+
+
+def test_sizes_keep_the_protocol_and_take_fewer_streams(repo_root):
+    from oodrl.api.evaluation import sized_params
+    from oodrl.api.project import pipeline_at
+    from oodrl.metrics.operating import min_calibration_streams_conditional
+
+    pipeline = pipeline_at(repo_root / "pipeline" / "cartpole")
+    full = sized_params(pipeline, "full", None)
+    small = sized_params(pipeline, "small", None)
+    tiny = sized_params(pipeline, "tiny", 7)
+    assert full.tiers.n_streams == 100 and full.tiers.n_calibration == 200
+    # small: the pipeline's calibration streams (its threshold), half its faulty streams
+    assert small.tiers.model_dump(exclude={"n_streams", "n_audit"}) == full.tiers.model_dump(
+        exclude={"n_streams", "n_audit"}
+    )
+    assert (small.tiers.n_streams, small.tiers.n_audit) == (50, 100)
+    assert small.model_dump(exclude={"tiers"}) == full.model_dump(exclude={"tiers"})
+    rule = full.tiers
+    assert tiny.tiers.n_calibration == min_calibration_streams_conditional(rule.alpha, rule.delta)
+    assert (tiny.tiers.n_streams, tiny.seed, tiny.metrics.n_boot) == (10, 7, 100)

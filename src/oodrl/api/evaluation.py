@@ -33,16 +33,20 @@ if TYPE_CHECKING:
     from oodrl.config import Params
     from oodrl.core.detector import BaseDetector
 
-#: The evaluation sizes. "full" is the pipeline's own params; the others keep its protocol
-#: (T, onset, the ID set the detector is fitted and calibrated on, α, K, the threshold rule,
-#: the bootstrap) and use fewer held-out streams: `n_calibration` calibration streams (at least
-#: as many as the per-stream rule needs at the pipeline's α and δ), `n_audit` audit streams and
-#: `n_streams` faulty streams per (fault, tier) cell, each with its clean twin.
+#: "tiny"'s calibration streams: the fewest the rule allows (`_calibration_needed`).
+FEWEST = 0
+#: The evaluation sizes: `tiers` keys replaced in the pipeline's params. "full" is the
+#: pipeline's own params. "small" keeps its protocol and its calibration streams, so its
+#: per-stream threshold is the pipeline's, and scores the first `n_streams` of each cell's
+#: faulty streams (with their clean twins) and the first `n_audit` audit streams: the same
+#: quantities, estimated on fewer streams. "tiny" also calibrates on the fewest streams the
+#: per-stream rule allows at the pipeline's α (and δ), a higher threshold than the pipeline's.
 SIZES: dict[str, dict[str, int]] = {
     "full": {},
-    "small": {"n_calibration": 50, "n_audit": 50, "n_streams": 50},
-    "tiny": {"n_calibration": 0, "n_audit": 10, "n_streams": 10},
+    "small": {"n_audit": 100, "n_streams": 50},
+    "tiny": {"n_calibration": FEWEST, "n_audit": 10, "n_streams": 10},
 }
+
 #: Overrides every call's `size` (tests and documentation builds run the examples fast).
 SIZE_VARIABLE = "OODRL_EVALUATE_SIZE"
 #: Bootstrap resamples at size "tiny" (the others keep the pipeline's `metrics.n_boot`).
@@ -93,13 +97,15 @@ def evaluate(
         Impact tiers: ``benign``, ``mild``, ``moderate``, ``severe``. A tier a fault cannot
         reach has no rows.
     size : {"small", "full", "tiny"}, default "small"
-        ``"full"``: the pipeline's params (200 calibration, 200 audit and 100 faulty streams
-        per cell in the suite's pipelines). ``"small"``: the same protocol and fit data with
-        50 calibration streams (or as many as the per-stream rule needs at the pipeline's α
-        and δ), 50 audit streams and 50 faulty streams per cell; about 4× fewer streams,
-        wider CIs. ``"tiny"``: the fewest calibration streams the rule allows, 10 audit and
-        10 faulty streams per cell and 100 bootstrap resamples, for tests and documentation
-        builds (too few streams to rank detectors). The environment variable
+        ``"full"``: the pipeline's params (in the suite's pipelines 200 calibration streams,
+        200 audit streams and 100 faulty streams per cell, each with its clean twin).
+        ``"small"``: the same protocol, fit data and calibration streams (so the same
+        per-stream threshold), scored on the first 50 faulty streams of each cell and the
+        first 100 audit streams: the same quantities as at full size, estimated on half the
+        streams (wider CIs). ``"tiny"``: 10 faulty and 10 audit streams, calibration on the
+        fewest streams the per-stream rule allows at the pipeline's α (a higher threshold
+        than the pipeline's) and 100 bootstrap resamples, for tests and documentation builds:
+        too few streams to rank detectors. The environment variable
         ``OODRL_EVALUATE_SIZE``, when set, overrides `size`.
     seed : int, optional
         The protocol's base seed (default: the pipeline's ``seed``). Another seed draws other
@@ -227,10 +233,10 @@ def sized_params(pipeline: Pipeline, size: str, seed: int | None) -> Params:
 
     data = read_params_data(pipeline.params_path)
     params = parse_params(data, str(pipeline.params_path), components=False)
-    tiers = dict(SIZES[size])
+    tiers = {key: min(value, getattr(params.tiers, key)) for key, value in SIZES[size].items()}
+    if tiers.get("n_calibration") == FEWEST:
+        tiers["n_calibration"] = min(_calibration_needed(params), params.tiers.n_calibration)
     if tiers:
-        needed = _calibration_needed(params)
-        tiers["n_calibration"] = max(tiers["n_calibration"], needed)
         data = {**data, "tiers": {**data.get("tiers", {}), **tiers}}
         if size == "tiny":
             data["metrics"] = {**data.get("metrics", {}), "n_boot": TINY_N_BOOT}
