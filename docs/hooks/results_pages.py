@@ -98,6 +98,9 @@ def _source(path: Path) -> str:
     return f"`{path.as_posix()}`"
 
 
+#: Front matter of the pages of tables: Material's search leaves them out (their thousands of
+#: numeric cells were a quarter of the build's time and find nothing a reader searches for).
+UNSEARCHED = "---\nsearch:\n  exclude: true\n---\n\n"
 GENERATED = (
     "<!-- Generated at build time from the committed tables (docs/hooks/results_pages.py): "
     "rebuild the pipelines, not this page. -->"
@@ -109,7 +112,7 @@ def environment_page(root: Path, env: Environment) -> tuple[str, dict[str, Path]
     figures: dict[str, Path] = {}
     policies = ", ".join(run.policy for run in env.runs)
     lines = [
-        f"# {env.title}",
+        UNSEARCHED + f"# {env.title}",
         "",
         GENERATED,
         "",
@@ -221,7 +224,14 @@ def leaderboard_pages(root: Path) -> tuple[str, str, dict[str, Path]]:
         head += ["## Every other table", ""]
         head += [f"- [{heading}](leaderboard-tables.md#{slug(heading)})" for heading in rest]
         head += [""]
-    full = ["# Leaderboard: every table", "", GENERATED, "", text.split("\n", 1)[1].strip(), ""]
+    full = [
+        UNSEARCHED + "# Leaderboard: every table",
+        "",
+        GENERATED,
+        "",
+        text.split("\n", 1)[1].strip(),
+        "",
+    ]
     return "\n".join(head).rstrip() + "\n", "\n".join(full), copies
 
 
