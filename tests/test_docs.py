@@ -134,8 +134,16 @@ def test_api_reference_documents_every_public_name(site):
 
 
 def test_results_pages_every_environment_and_the_leaderboard(site):
-    leaderboard = text_of(page(site, "results/leaderboard"))
+    markup = page(site, "results/leaderboard")
+    leaderboard = text_of(markup)
     assert "IQM [95% CI]" in leaderboard and "Tier mild" in leaderboard
+    # It leads with the ranking: its first table is detector, IQM and mean with CIs.
+    first = re.search(r"<thead>(.*?)</thead>", markup, re.S).group(1)
+    assert [text_of(c).strip() for c in re.findall(r"<th[^>]*>(.*?)</th>", first, re.S)] == [
+        "detector",
+        "IQM [95% CI]",
+        "mean [95% CI]",
+    ]
     assert (site / "results" / "leaderboard-page.html").is_file()
     every_table = text_of(page(site, "results/leaderboard-tables"))
     assert "Minimum detectable impact" in every_table

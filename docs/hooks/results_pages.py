@@ -215,6 +215,13 @@ def leaderboard_pages(root: Path) -> tuple[str, str, dict[str, Path]]:
         "",
     ]
     shown = [(heading, body) for heading, body in sections if heading.startswith(HEADLINE_SECTIONS)]
+    if shown and (ranking := _ranking(shown[0][1])):
+        title = re.sub(
+            r"^Tier (`\w+`): mean (.*?) per detector and environment (\(.*\))$",
+            r"Ranking at tier \1: \2 \3",
+            shown[0][0],
+        )
+        head += [f"## {title}", "", ranking, ""]
     for k, (heading, body) in enumerate(shown):
         head += [f"## {heading}", "", body.strip(), ""]
         if k == 0 and "results/leaderboard.png" in copies:  # the ranking first, then its figure
@@ -233,6 +240,26 @@ def leaderboard_pages(root: Path) -> tuple[str, str, dict[str, Path]]:
         "",
     ]
     return "\n".join(head).rstrip() + "\n", "\n".join(full), copies
+
+
+def _ranking(section: str) -> str | None:
+    """The section's first table cut to its ranking columns: detector, IQM and mean with CIs
+    (the per-environment columns of the full table come after, on a wide screen)."""
+    table = []
+    for line in section.strip().splitlines():
+        if line.startswith("|"):
+            table.append([cell.strip() for cell in line.strip().strip("|").split("|")])
+        elif table:
+            break
+    if len(table) < 3:
+        return None
+    header = table[0]
+    wanted = [k for k, name in enumerate(header) if k == 0 or "[95% CI]" in name]
+    if len(wanted) < 2:
+        return None
+    rows = [[row[k] for k in wanted] for row in [header, *table[2:]]]
+    rows.insert(1, ["---"] + ["---:"] * (len(wanted) - 1))
+    return "\n".join("| " + " | ".join(row) + " |" for row in rows)
 
 
 def slug(heading: str) -> str:
