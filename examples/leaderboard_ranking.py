@@ -4,9 +4,9 @@
 
 No stage runs: the leaderboard is tracked by git (pipeline/suite/reports/leaderboard.json).
 The ranking is the leaderboard's interquartile mean over (environment, policy, fault) cells with
-its stratified-bootstrap 95% CI; the table below it is each environment's mean over its faults
-(each fault's mean over the policies), computed here from the leaderboard's cells as the
-leaderboard's own table (leaderboard.md) computes it.
+its stratified-bootstrap 95% CI, its mean beside it; the table below is each environment's mean
+over its faults (each fault's mean over the policies), computed here from the leaderboard's
+cells as the leaderboard's own table (leaderboard.md) computes it.
 """
 
 from __future__ import annotations
@@ -25,6 +25,10 @@ import oodrl  # noqa: E402
 SUITE = Path(__file__).resolve().parents[1] / "pipeline" / "suite"
 
 
+def interval(row) -> str:
+    return f"{row.value:.3f} [{row.ci_low:.3f}, {row.ci_high:.3f}]"
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--tier", default="mild")
@@ -34,8 +38,9 @@ def main() -> None:
     args = parser.parse_args()
 
     ranking = oodrl.load_results(SUITE, kind="ranking")
-    rows = ranking[(ranking.tier == args.tier) & (ranking.metric == args.metric)
-                   & ranking.env.isna()].sort_values("value")  # fmt: skip
+    overall = ranking[(ranking.tier == args.tier) & (ranking.metric == args.metric)
+                      & ranking.env.isna()]  # fmt: skip
+    rows = overall[overall.statistic == "iqm"].sort_values("value")
     if rows.empty:
         choices = ranking[ranking.env.isna()][["tier", "metric"]].drop_duplicates()
         raise SystemExit(
@@ -55,7 +60,10 @@ def main() -> None:
     path = out / f"ranking_{args.tier}_{args.metric.replace('@', '_at_')}.png"
     figure.savefig(path, dpi=120)
 
-    print(rows.iloc[::-1][["detector", "value", "ci_low", "ci_high"]].to_string(index=False))
+    means = overall[overall.statistic == "mean"].set_index("detector")
+    print(f"{'detector':<24}{'IQM [95% CI]':<24}mean [95% CI]")
+    for row in rows.iloc[::-1].itertuples():
+        print(f"{row.detector:<24}{interval(row):<24}{interval(means.loc[row.detector])}")
     board = oodrl.load_results(SUITE)
     cells = board[(board.tier == args.tier) & (board.metric == args.metric)]
     per_fault = cells.groupby(["detector", "env", "fault"]).value.mean()

@@ -4,6 +4,7 @@ arguments are checked before anything runs, each refusal one line naming what is
 
 from __future__ import annotations
 
+import os
 import sys
 
 import pandas as pd
@@ -129,3 +130,19 @@ def test_sizes_keep_the_protocol_and_take_fewer_streams(repo_root):
     rule = full.tiers
     assert tiny.tiers.n_calibration == min_calibration_streams_conditional(rule.alpha, rule.delta)
     assert (tiny.tiers.n_streams, tiny.seed, tiny.metrics.n_boot) == (10, 7, 100)
+
+
+@pytest.mark.slow
+def test_a_detectors_params_paths_are_the_pipelines_as_in_its_stages(monkeypatch, tmp_path):
+    """The policy view reads `policy: models/policy.pt` relative to the pipeline, as its fit
+    stage does; the caller's working directory is left as it was."""
+    from oodrl.api.evaluation import sized_params
+    from oodrl.api.project import pipeline_at, resolve_directory
+
+    monkeypatch.chdir(tmp_path)
+    params = sized_params(pipeline_at(resolve_directory("cartpole", "env")), "full", None)
+    frame = oodrl.evaluate(params.detector("q_margin"), env="cartpole", faults=["stuck_actuator"],
+                           size="tiny", name="q_margin")  # fmt: skip
+    assert set(frame.detector) == {"q_margin"} and set(frame.fault.dropna()) == {"stuck_actuator"}
+    assert frame.attrs["size"] == "tiny"
+    assert os.getcwd() == str(tmp_path)

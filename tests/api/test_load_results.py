@@ -101,16 +101,19 @@ def test_suite_leaderboard_is_one_row_per_cell_detector_and_metric(board, board_
     assert auroc.family == cell["family"] and auroc.severity == evidence["severity"]
 
 
-def test_suite_ranking_is_the_leaderboards_iqm_best_first(repo_root, board_json):
+def test_suite_ranking_is_the_leaderboards_aggregates_best_first(repo_root, board_json):
     ranking = oodrl.load_results(repo_root / "pipeline/suite", kind="ranking")
     overall = ranking[ranking.env.isna()]
-    for (tier, metric), rows in overall.groupby(["tier", "metric"]):
-        iqm = board_json["iqm"][metric][tier]
-        assert sorted(rows.detector) == sorted(iqm)
-        assert list(rows.value) == sorted(rows.value, reverse=True)
+    assert set(overall.statistic) == {"iqm", "mean"}
+    for (tier, metric, statistic), rows in overall.groupby(["tier", "metric", "statistic"]):
+        stats = board_json[statistic][metric][tier]
+        assert sorted(rows.detector) == sorted(stats)
+        quietest_first = tier in board_json["lower_is_better"][metric]
+        assert list(rows.value) == sorted(rows.value, reverse=not quietest_first)
+        assert set(rows.n_cells) == {board_json["n_cells"][metric][tier]}
         for row in rows.itertuples():
             assert (row.value, row.ci_low, row.ci_high) == tuple(
-                iqm[row.detector][k] for k in ("value", "ci_low", "ci_high")
+                stats[row.detector][k] for k in ("value", "ci_low", "ci_high")
             )
     scoped = ranking[ranking.env.notna()]
     assert set(scoped.env) == {

@@ -73,8 +73,9 @@ def evaluate(
     the onset, with the pipeline's own protocol code and seeds (`oodrl.protocol`,
     `oodrl.stages`, `oodrl.metrics`): the per-stream alarm threshold at the pipeline's
     false-alarm budget α, detection within K steps, matched metrics against each stream's
-    clean twin, bootstrap and Clopper-Pearson CIs. Nothing is written outside a temporary
-    directory.
+    clean twin, bootstrap and Clopper-Pearson CIs. It runs in the pipeline's directory, as
+    the stages do (a detector's params may name paths relative to it, like the policy view's
+    ``policy: models/policy.pt``), and writes nothing outside a temporary directory.
 
     Parameters
     ----------
@@ -402,14 +403,17 @@ def _run(
     from oodrl.stages.impact import collect_tiers
     from oodrl.stages.score import score_clean_sets, score_injector_sets
 
-    policy = pipeline.policy_path
+    policy = pipeline.policy_path.resolve()
+    tmp = tmp.resolve()
     key = re.sub(r"[^\w.-]+", "_", label)  # the stores' file names
     data, scores = tmp / "data", tmp / "scores"
     id_path = data / "id.zarr"
     heldout = {which: data / f"{which}.zarr" for which in HELDOUT_SETS}
     tier_paths = {fault: data / "tiers" / f"{fault}.zarr" for fault in plan}
     model = tmp / "models" / f"{key}.pkl"
-    with _single_threaded(detector), _sys_path_kept():
+    # In the pipeline's directory, as its stages run: a detector's params name paths relative
+    # to it (the policy view's `policy: models/policy.pt`).
+    with _single_threaded(detector), _sys_path_kept(), contextlib.chdir(pipeline.directory):
         collect_id(params, policy, id_path)
         for which, path in heldout.items():
             collect_heldout(params, which, policy, path)

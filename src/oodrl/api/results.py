@@ -42,6 +42,9 @@ SUITE_FILES = {
     "ranking": Path("reports/leaderboard.json"),
 }
 KINDS = (*PIPELINE_FILES, *SUITE_FILES)
+#: The ranking's aggregates over cells (leaderboard.json's keys), and its frame's columns.
+RANKING_STATISTICS = ("iqm", "mean")
+RANKING_COLUMNS = (*COLUMNS, "statistic", "n_cells")
 #: A results file's name -> its kind, for a file passed as `where`.
 FILE_KINDS = {
     "results.yaml": "results",
@@ -83,11 +86,16 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
 
         For the suite (default ``"leaderboard"``): ``"leaderboard"``, every (environment,
         policy, fault, tier) cell of ``reports/leaderboard.json`` with each detector's
-        matched AUROC and, at the tiers, its operating point; ``"ranking"``, the
-        leaderboard's interquartile means over cells with their stratified-bootstrap CIs
-        (``env`` None: over every environment; otherwise the environments, joined by
-        ``"|"``, where more detectors run). ``"results"``, ``"tiers"`` and ``"sweep"`` of the
-        suite concatenate those of all its runs. For a file, its name says its kind.
+        matched AUROC and, at the tiers, its operating point (the cells whose tier was
+        verified, as the leaderboard aggregates them); ``"ranking"``, the leaderboard's
+        aggregates over those cells, best first (on the ``benign`` tier, where an alarm is
+        a cost, the quietest first), with their stratified-bootstrap CIs: two
+        more columns, ``statistic`` (``"iqm"``, the interquartile mean the leaderboard ranks
+        by, or ``"mean"``) and ``n_cells``; ``env`` is None for the ranking over every
+        environment, else the environments, joined by ``"|"``, where more detectors run.
+        ``"results"``, ``"tiers"`` and ``"sweep"`` of the suite concatenate those of all its
+        runs (the tiers of 21 runs take minutes, see Notes). For a file, its name says its
+        kind.
 
     Returns
     -------
@@ -128,7 +136,8 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
     import pandas as pd
 
     rows, attrs = _load_rows(where, kind)
-    frame = pd.DataFrame.from_records(list(rows), columns=list(COLUMNS))
+    columns = RANKING_COLUMNS if attrs["kind"] == "ranking" else COLUMNS
+    frame = pd.DataFrame.from_records(list(rows), columns=list(columns))
     frame.attrs.update(attrs)
     return frame
 
@@ -384,25 +393,40 @@ def leaderboard_rows(document: Mapping[str, Any]) -> Iterator[dict]:
                 yield from operating_rows(base, point)
 
 
-def _descending(value: Any) -> tuple[bool, float]:
-    number = _number(value)
-    return math.isnan(number), -number if not math.isnan(number) else 0.0
+def _best_first(stats: Mapping[str, Any], sign: int) -> tuple[bool, float]:
+    """Sort key: the largest value first (sign 1), or the smallest (sign −1: where lower is
+    better, the leaderboard's `lower_is_better`, as on harmless shifts); no value last."""
+    number = _number(stats.get("value"))
+    return math.isnan(number), 0.0 if math.isnan(number) else -sign * number
 
 
 def ranking_rows(document: Mapping[str, Any]) -> Iterator[dict]:
-    """Rows of the leaderboard's interquartile means: over every environment (env None),
-    then per group of environments where more detectors run (env: their ids joined by |)."""
-    groups: list[tuple[str | None, str, str, Mapping]] = []
-    for metric, tiers in (document.get("iqm") or {}).items():
-        for tier, by_detector in tiers.items():
-            groups.append((None, metric, tier, by_detector))
+    """Rows of the leaderboard's aggregates over cells, best first (on harmless shifts, the
+    quietest first: the leaderboard's `lower_is_better`): its interquartile mean and
+    its mean (`statistic`) with their stratified-bootstrap CIs and the cells behind them
+    (`n_cells`), over every environment (env None), then per group of environments where
+    more detectors run (env: their ids joined by |). Older leaderboards hold the IQM only."""
+    groups: list[tuple[str | None, str, str, str, Mapping, Any]] = []
+    n_cells = document.get("n_cells") or {}
+    for statistic in RANKING_STATISTICS:
+        for metric, tiers in (document.get(statistic) or {}).items():
+            for tier, by_detector in tiers.items():
+                count = (n_cells.get(metric) or {}).get(tier)
+                groups.append((None, metric, tier, statistic, by_detector, count))
     for metric, tiers in (document.get("iqm_where_more_detectors_run") or {}).items():
         for tier, entries in tiers.items():
             for entry in entries:
-                groups.append(("|".join(entry["environments"]), metric, tier, entry["iqm"]))
-    for env, metric, tier, by_detector in groups:
-        ranked = sorted(by_detector.items(), key=lambda item: _descending(item[1].get("value")))
+                env = "|".join(entry["environments"])
+                for statistic in RANKING_STATISTICS:
+                    if statistic in entry:
+                        groups.append((env, metric, tier, statistic, entry[statistic],
+                                       entry.get("n_cells")))  # fmt: skip
+    lower = document.get("lower_is_better") or {}
+    for env, metric, tier, statistic, by_detector, count in groups:
+        sign = -1 if tier in lower.get(metric, ()) else 1
+        ranked = sorted(by_detector.items(), key=lambda item: _best_first(item[1], sign))
         for detector, stats in ranked:
             base = _base(env, None, None, tier, detector, None, None, None)
-            yield _row(base, metric, stats.get("value"),
-                       [stats.get("ci_low"), stats.get("ci_high")])  # fmt: skip
+            ci = [stats.get("ci_low"), stats.get("ci_high")]
+            row = _row(base, metric, stats.get("value"), ci)
+            yield {**row, "statistic": statistic, "n_cells": _number(count)}
