@@ -759,10 +759,12 @@ def suite_try(
 
 @command("readme-table")
 def readme_table(
-    headline: Annotated[Path, typer.Argument()] = Path("reports/headline.md"),
+    headline: Annotated[Path, typer.Argument()] = Path("pipeline/suite/reports/leaderboard.json"),
     readme: Annotated[Path, typer.Option()] = Path("README.md"),
 ) -> None:
-    """Copy the pipeline's headline table into README.md between its headline markers."""
+    """Write a generated headline into README.md between its markers: the suite leaderboard's
+    top detectors (the default), or a pipeline's reports/headline.md (`--readme
+    docs/getting-started.md` holds the root's)."""
     from oodrl.report.readme import insert_headline
 
     insert_headline(readme, headline)

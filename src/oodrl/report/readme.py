@@ -125,6 +125,8 @@ def generated_block(text: str, start: str) -> str | None:
 
 def insert_headline(readme: Path, headline: Path) -> None:
     """Rewrite `readme`'s generated block of `headline`'s kind from `headline`."""
+    from oodrl.io.fileio import atomic_write_text
+
     start, block = _source_block(headline)
     text = readme.read_text()
     if generated_block(text, start) is None:
@@ -138,4 +140,4 @@ def insert_headline(readme: Path, headline: Path) -> None:
         raise StoreError(f"{readme}: no {start} ... {END} markers to replace; {other}.")
     before, rest = text.split(start, 1)
     after = rest.split(END, 1)[1]
-    readme.write_text(f"{before}{start}\n{block}\n{END}{after}")
+    atomic_write_text(readme, f"{before}{start}\n{block}\n{END}{after}")

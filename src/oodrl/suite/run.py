@@ -466,12 +466,12 @@ def _build_suite(
     read_only = _check_remote(root, remote) if remote is not None else None
     if ray_address is not None and remote is None:
         raise ConfigError("--ray: the nodes share stages through a DVC remote and none is "
-                          "configured; add one every node can reach (README: a shared DVC "
-                          "remote), e.g. `dvc remote add -d lab s3://bucket/oodrl`.")  # fmt: skip
+                          "configured; add one every node can reach (docs/how-to/remotes.md), "
+                          "e.g. `dvc remote add -d lab s3://bucket/oodrl`.")  # fmt: skip
     if ray_address is not None and read_only:
         raise ConfigError(f"--ray: the nodes share stages through a DVC remote and "
                           f"{remote.name!r} is read-only ({read_only}); give them one they can "
-                          f"write (README: a shared DVC remote), or build on this machine with "
+                          f"write (docs/how-to/remotes.md), or build on this machine with "
                           f"--workers.")  # fmt: skip
     if read_only:
         remote = replace(remote, writable=False)
