@@ -36,6 +36,22 @@ def dvc_project(directory: Path, cache: str | None, stages: str) -> None:
     (directory / "dvc.yaml").write_text(f"stages:\n{stages}")
 
 
+def one_pipeline_suite(repo: Path, command: str) -> Path:
+    """The root and pipeline/a, each a stage running `command` that writes
+    reports/results.yaml, and the leaderboard reading a's, committed."""
+    build = f"  build:\n    cmd: {command}\n    outs:\n      - reports/results.yaml\n"
+    dvc_project(repo, None, build)
+    dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", build)
+    leaderboard = ("  leaderboard:\n    cmd: cat ../a/reports/results.yaml > leaderboard.txt\n"
+                   "    deps:\n      - ../a/reports/results.yaml\n"
+                   "    outs:\n      - leaderboard.txt\n")  # fmt: skip
+    dvc_project(repo / "pipeline" / "suite", "../../../.dvc/cache", leaderboard)
+    git(repo, "init", "-q")
+    git(repo, "add", "-A")
+    git(repo, "commit", "-q", "-m", "a tiny suite")
+    return repo
+
+
 def assert_checking_line_then_the_error(output: str) -> None:
     """What a refused `oodrl suite run` prints: the line saying what it checks first, then its
     one error line (SPEC §22)."""

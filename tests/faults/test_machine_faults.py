@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from tiny_suite import dvc_project, git
+from tiny_suite import git, one_pipeline_suite
 
 from oodrl.faults import FAULTS, fault_in_output, machine_fault
 
@@ -130,17 +130,7 @@ def test_suite_run_with_its_temporary_folder_on_a_full_disk(tmp_path, full_disk)
     """The run's git bundle and clones go to the temporary directory: with 8 KiB left there, git
     fails and the run says so in one line, naming the folder; the checkout is as it was."""
     repo = tmp_path / "repo"
-    build = "  build:\n    cmd: mkdir -p reports && echo x > reports/results.yaml\n" \
-            "    outs:\n      - reports/results.yaml\n"  # fmt: skip
-    dvc_project(repo, None, build)
-    dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", build)
-    leaderboard = ("  leaderboard:\n    cmd: cat ../a/reports/results.yaml > leaderboard.txt\n"
-                   "    deps:\n      - ../a/reports/results.yaml\n"
-                   "    outs:\n      - leaderboard.txt\n")  # fmt: skip
-    dvc_project(repo / "pipeline" / "suite", "../../../.dvc/cache", leaderboard)
-    git(repo, "init", "-q")
-    git(repo, "add", "-A")
-    git(repo, "commit", "-q", "-m", "a tiny suite")
+    one_pipeline_suite(repo, "mkdir -p reports && echo x > reports/results.yaml")
     before = _snapshot(repo)
     scratch = full_disk / "data"
     filler = full_disk / "filler"

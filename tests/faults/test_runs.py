@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from tiny_suite import dvc_project, git
+from tiny_suite import git, one_pipeline_suite
 
 from oodrl.suite.checkout_lock import CheckoutBusy, checkout_lock, lock_path
 from oodrl.suite.scratch import DVC_CONFIG_FOLDER, TASK_FOLDER, TRY_FOLDER, working_folder
@@ -30,17 +30,7 @@ BUILD = ('mkdir -p reports && touch reports/started && if [ -n "$OODRL_TEST_SLOW
 
 
 def tiny_suite(repo: Path) -> Path:
-    build = f"  build:\n    cmd: {BUILD}\n    outs:\n      - reports/results.yaml\n"
-    dvc_project(repo, None, build)
-    dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", build)
-    leaderboard = ("  leaderboard:\n    cmd: cat ../a/reports/results.yaml > leaderboard.txt\n"
-                   "    deps:\n      - ../a/reports/results.yaml\n"
-                   "    outs:\n      - leaderboard.txt\n")  # fmt: skip
-    dvc_project(repo / "pipeline" / "suite", "../../../.dvc/cache", leaderboard)
-    git(repo, "init", "-q")
-    git(repo, "add", "-A")
-    git(repo, "commit", "-q", "-m", "a tiny suite")
-    return repo
+    return one_pipeline_suite(repo, BUILD)
 
 
 def _environment(scratch: Path, **more: str) -> dict[str, str]:

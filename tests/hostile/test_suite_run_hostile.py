@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
-from tiny_suite import dvc, dvc_project, git
+from tiny_suite import dvc, git, one_pipeline_suite
 from typer.testing import CliRunner
 
 from oodrl.cli import app
@@ -28,21 +28,6 @@ from oodrl.suite.run import SuiteRunError, run_suite
 QUICK = "mkdir -p reports && echo built > reports/results.yaml"
 #: A stage that marks its start in its clone, then runs long enough to be interrupted.
 SLOW = "mkdir -p reports && touch reports/started && sleep 300 && echo built > reports/results.yaml"
-
-
-def tiny_suite(repo: Path, command: str) -> Path:
-    """The root and pipeline/a, each a stage running `command`, and the leaderboard, committed."""
-    build = f"  build:\n    cmd: {command}\n    outs:\n      - reports/results.yaml\n"
-    dvc_project(repo, None, build)
-    dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", build)
-    leaderboard = ("  leaderboard:\n    cmd: cat ../a/reports/results.yaml > leaderboard.txt\n"
-                   "    deps:\n      - ../a/reports/results.yaml\n"
-                   "    outs:\n      - leaderboard.txt\n")  # fmt: skip
-    dvc_project(repo / "pipeline" / "suite", "../../../.dvc/cache", leaderboard)
-    git(repo, "init", "-q")
-    git(repo, "add", "-A")
-    git(repo, "commit", "-q", "-m", "a tiny suite")
-    return repo
 
 
 def with_remote(repo: Path, url: Path) -> Path:
@@ -64,7 +49,7 @@ def _files(directory: Path) -> dict[str, bytes]:
 # -- 1. a directory remote that does not exist -------------------------------------------------
 def test_a_missing_directory_remote_is_refused_and_not_created(tmp_path):
     missing = tmp_path / "typo" / "remote"
-    repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), missing)
+    repo = with_remote(one_pipeline_suite(tmp_path / "repo", QUICK), missing)
     before = _files(tmp_path)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
     assert result.exit_code == 1, result.output
@@ -81,7 +66,7 @@ def test_a_missing_directory_remote_is_refused_and_not_created(tmp_path):
 
 def test_a_remote_that_is_a_file_is_refused(tmp_path):
     (tmp_path / "remote").write_text("not a directory\n")
-    repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
+    repo = with_remote(one_pipeline_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
     with pytest.raises(SuiteRunError, match="remote is not a directory; create the directory"):
         suite_run._check_writable(repo, suite_run.default_remote(repo))
 
@@ -89,7 +74,7 @@ def test_a_remote_that_is_a_file_is_refused(tmp_path):
 def test_a_root_cache_moved_by_config_is_refused_before_any_task(tmp_path, status_calls):
     """Local tasks fill the root's cache; pipeline/a's .dvc/config names the root's .dvc/cache,
     which `dvc cache dir --local` moved away: the head could not check pipeline/a out."""
-    repo = tiny_suite(tmp_path / "repo", QUICK)
+    repo = one_pipeline_suite(tmp_path / "repo", QUICK)
     dvc(repo, "cache", "dir", "--local", str(tmp_path / "elsewhere"))
     before = _files(tmp_path)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
@@ -122,7 +107,7 @@ def http_server():
 
 
 def test_a_ray_address_that_is_not_ray_is_refused_in_seconds(http_server, tmp_path):
-    repo = tiny_suite(tmp_path / "repo", QUICK)
+    repo = one_pipeline_suite(tmp_path / "repo", QUICK)
     began = time.monotonic()
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--ray", http_server])
     seconds = time.monotonic() - began
@@ -166,7 +151,7 @@ def status_calls(monkeypatch) -> list[str]:
 
 def test_the_remote_is_refused_before_any_dvc_status(tmp_path, status_calls):
     (tmp_path / "remote").write_text("not a directory\n")
-    repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
+    repo = with_remote(one_pipeline_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
     with pytest.raises(SuiteRunError, match="is not a directory"):
         run_suite(repo, workers=2, echo=lambda line: None)
     assert status_calls == []
@@ -176,7 +161,7 @@ def test_ray_without_a_remote_is_refused_before_any_dvc_status(tmp_path, status_
     from oodrl.errors import ConfigError
 
     monkeypatch.setattr(suite_run, "_check_reachable", lambda address: None)  # a live cluster
-    repo = tiny_suite(tmp_path / "repo", QUICK)
+    repo = one_pipeline_suite(tmp_path / "repo", QUICK)
     with pytest.raises(ConfigError, match="--ray: the nodes share stages through a DVC remote"):
         run_suite(repo, workers=2, ray_address="127.0.0.1:6379", echo=lambda line: None)
     assert status_calls == []
@@ -185,7 +170,7 @@ def test_ray_without_a_remote_is_refused_before_any_dvc_status(tmp_path, status_
 def test_a_progress_line_comes_before_the_status_checks(tmp_path, monkeypatch):
     """A first line before DVC is even imported (finding 7: minutes of silence before)."""
     (tmp_path / "remote").mkdir()
-    repo = with_remote(tiny_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
+    repo = with_remote(one_pipeline_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
     lines: list[str] = []
     seen_by_status: list[list[str]] = []
 
@@ -216,7 +201,7 @@ def _started(scratch: Path) -> int:
 @pytest.mark.parametrize("name", ["SIGTERM", "SIGHUP"])
 def test_a_signal_mid_run_leaves_no_temporary_directory(tmp_path, name):
     (tmp_path / "remote").mkdir()  # with a remote: each task and the head have a DVC config dir
-    repo = with_remote(tiny_suite(tmp_path / "repo", SLOW), tmp_path / "remote")
+    repo = with_remote(one_pipeline_suite(tmp_path / "repo", SLOW), tmp_path / "remote")
     scratch = tmp_path / "tmp"
     scratch.mkdir()
     status = git(repo, "status", "--porcelain", "--untracked-files=all")
