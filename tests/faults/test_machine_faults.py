@@ -7,12 +7,14 @@ files as they were, no temporary folder left."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import re
 import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -49,32 +51,33 @@ def _unmount(target: Path) -> None:
             return
 
 
+@contextlib.contextmanager
+def _tmpfs(target: Path, options: str) -> Iterator[Path]:
+    """A tmpfs mounted at `target` (made here) while the block runs."""
+    target.mkdir()
+    _mount(target, options)
+    try:
+        yield target
+    finally:
+        _unmount(target)
+
+
 @pytest.fixture
 def full_disk(tmp_path) -> Path:
     """A 64 KiB filesystem with no space left (a filler file took it), writable by anyone."""
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    _mount(disk, "size=64k,mode=1777")
-    try:
+    with _tmpfs(tmp_path / "disk", "size=64k,mode=1777") as disk:
         with open(disk / "filler", "wb", buffering=0) as filler, pytest.raises(OSError) as full:
             while True:
                 filler.write(b"\0" * 4096)
         assert full.value.errno == errno.ENOSPC
         (disk / "data").mkdir()  # a folder takes no block of a tmpfs
         yield disk
-    finally:
-        _unmount(disk)
 
 
 @pytest.fixture
 def read_only_disk(tmp_path) -> Path:
-    disk = tmp_path / "ro"
-    disk.mkdir()
-    _mount(disk, "size=64k,ro")
-    try:
+    with _tmpfs(tmp_path / "ro", "size=64k,ro") as disk:
         yield disk
-    finally:
-        _unmount(disk)
 
 
 @pytest.fixture(scope="module")

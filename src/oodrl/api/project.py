@@ -7,11 +7,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from oodrl.errors import ConfigError
+from oodrl.suite.pipeline import PARAMS_FILE, SUITE_DIR, pipeline_dirs
 
-#: The suite's directory, relative to the project root.
-SUITE_DIR = Path("pipeline/suite")
-#: A pipeline directory holds these.
-PARAMS_FILE = "params.yaml"
+#: A pipeline's committed policy, relative to its directory.
 POLICY_FILE = Path("models/policy.pt")
 
 
@@ -60,9 +58,7 @@ class Pipeline:
 
 def pipeline_names(root: Path | None) -> list[str]:
     """The names `pipeline/<name>` of the project's environment pipelines."""
-    if root is None or not (root / "pipeline").is_dir():
-        return []
-    return sorted(p.parent.name for p in (root / "pipeline").glob(f"*/{PARAMS_FILE}"))
+    return [] if root is None else [d.name for d in pipeline_dirs(root)[1:]]
 
 
 def resolve_directory(where: str | Path, what: str) -> Path:
