@@ -22,9 +22,30 @@ NOTES = ROOT / "docs" / "implementation-notes.md"
 REFERENCE_SPEC = ROOT.parent / "shared" / "SPEC.md"
 
 
-@pytest.fixture(scope="module")
+#: CI (.ci/run) names the folder its site goes to: the tests' strict build is then CI's, and CI
+#: builds no second one.
+SITE_VARIABLE = "OODRL_DOCS_SITE"
+
+
+@pytest.fixture(scope="session")
 def site(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("site")
+    """The site, built by `mkdocs build --strict` once per test run: under pytest-xdist the first
+    worker to ask builds it and the others wait and read it (a build takes half a minute of a
+    core). It goes to $OODRL_DOCS_SITE where that is set, else to the run's temporary folder."""
+    from filelock import FileLock
+
+    this_run = tmp_path_factory.getbasetemp()  # under xdist: this worker's, in the run's
+    shared = this_run.parent if os.environ.get("PYTEST_XDIST_WORKER") else this_run
+    out = Path(os.environ.get(SITE_VARIABLE) or shared / "site")
+    built = shared / "site.built"
+    with FileLock(f"{built}.lock"):
+        if not built.is_file():
+            build_site(out)
+            built.write_text(str(out))
+    return out
+
+
+def build_site(out: Path) -> None:
     before = sorted(p for p in (ROOT / "docs").rglob("*") if "__pycache__" not in p.parts)
     result = subprocess.run(
         [sys.executable, "-m", "mkdocs", "build", "--strict", "-d", str(out)],
@@ -37,7 +58,6 @@ def site(tmp_path_factory) -> Path:
     assert "WARNING" not in result.stderr, result.stderr[-4000:]
     after = sorted(p for p in (ROOT / "docs").rglob("*") if "__pycache__" not in p.parts)
     assert after == before  # generated pages live in the build only, never in docs/
-    return out
 
 
 def page(site: Path, path: str) -> str:
