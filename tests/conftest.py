@@ -53,6 +53,17 @@ def default_params(_default_params) -> dict:
 
 
 @pytest.fixture(scope="session")
+def built_repo(tmp_path_factory, repo_root, _default_params) -> Path:
+    """The tests' tiny pipeline (tests/tiny_pipeline.py), built once a session; tests read it or
+    copy it, never change it. `<it>/../import-trace` holds each process's imports."""
+    from tiny_pipeline import build
+
+    if not (repo_root / "models" / "policy.pt").is_file():
+        pytest.skip("models/policy.pt is not committed yet")
+    return build(repo_root, tmp_path_factory.mktemp("built"), _default_params)
+
+
+@pytest.fixture(scope="session")
 def heuristic_clean():
     """Eight clean LunarLander streams of T=300 from gymnasium's heuristic controller."""
     from rollout_policies import HeuristicPolicy

@@ -1,43 +1,52 @@
 """oodrl.evaluate (SPEC §25): at a pipeline's own params, a built-in detector's numbers are the
-pipeline's, bit for bit (a tiny pipeline built by `dvc repro` in a throw-away repository); its
-arguments are checked before anything runs, each refusal one line naming what is allowed."""
+pipeline's, bit for bit (the tests' tiny pipeline, built by `dvc repro` in a throw-away
+repository), and it writes nothing into the pipeline; its arguments are checked before anything
+runs, each refusal one line naming what is allowed."""
 
 from __future__ import annotations
 
 import os
 import sys
+from pathlib import Path
 
 import pandas as pd
 import pytest
+from tiny_pipeline import DETECTORS, INJECTORS
 
 import oodrl
-from oodrl.config import load_params, read_params_data
+from oodrl.config import load_params
 from oodrl.errors import ConfigError
 from oodrl.protocol.impact import LEVELS
-from oodrl.testing.pipeline import TINY_TIERS, copy_project, repro
 
 DETECTOR = "mahalanobis_distance"
-#: A post-hoc observation fault (live at the tiers) and an online one.
-FAULTS = ["observation_delay", "stuck_actuator"]
 KEYS = ["fault", "tier", "metric"]
 
 
-@pytest.fixture(scope="module")
-def tiny_pipeline(tmp_path_factory, repo_root):
-    """The root pipeline at CI's tiny params (ci/params.yaml; the tests' tiny tier search), one
-    detector and two faults, built up to its tier results."""
-    params = read_params_data(repo_root / "ci" / "params.yaml")
-    params["benchmark"] = {"detectors": [DETECTOR], "injectors": FAULTS}
-    params["tiers"] = {**params["tiers"], **TINY_TIERS}
-    repo = copy_project(repo_root, tmp_path_factory.mktemp("tiny") / "repo", params)
-    repro(repo, "tier_metrics")
-    return repo
+def _files(directory: Path) -> dict[str, tuple[int, int]]:
+    return {
+        p.relative_to(directory).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns)
+        for p in directory.rglob("*")
+        if p.is_file()
+    }
+
+
+@pytest.fixture
+def tiny_pipeline(built_repo):
+    """The tests' tiny pipeline (tests/tiny_pipeline.py), built once a session: the root
+    pipeline on two detectors and two faults, a post-hoc observation fault (live at the tiers)
+    and an online one. Other tests read and copy it: evaluate must leave it as it was."""
+    assert DETECTOR in DETECTORS and INJECTORS == ["observation_delay", "stuck_actuator"]
+    before = _files(built_repo)
+    yield built_repo
+    assert _files(built_repo) == before, "oodrl.evaluate wrote into the pipeline's directory"
 
 
 @pytest.mark.slow
 def test_at_the_pipelines_params_evaluate_gives_the_pipelines_numbers(tiny_pipeline):
     committed = oodrl.load_results(tiny_pipeline, kind="tiers")
-    assert set(committed.detector) == {DETECTOR} and not committed.empty
+    assert set(committed.detector) == set(DETECTORS)
+    committed = committed[committed.detector == DETECTOR]
+    assert not committed.empty
     detector = load_params(tiny_pipeline / "params.yaml", components=False).detector(DETECTOR)
     path = list(sys.path)
     frame = oodrl.evaluate(
