@@ -28,6 +28,38 @@ def pytest_configure(config):
             signal.signal(signum, lambda number, frame: None)
 
 
+#: Set in what each pytest-xdist worker is given when tests/scheduling.py deals the tests.
+BY_MODULE = "oodrl_by_module"
+
+
+def _by_module(config: pytest.Config) -> bool:
+    """`-n N` without `--dist` other than load: the tests are dealt by tests/scheduling.py."""
+    return config.getoption("dist", "no") == "load"
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    if not _by_module(config):
+        return None
+    from scheduling import module_scheduling
+
+    return module_scheduling(config, log)
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_configure_node(node):
+    node.workerinput[BY_MODULE] = _by_module(node.config)
+
+
+def pytest_collection_modifyitems(config, items):
+    """A worker collects the costliest modules first when tests/scheduling.py deals them (every
+    worker collects, and all must list the tests in the same order)."""
+    if getattr(config, "workerinput", {}).get(BY_MODULE):
+        from scheduling import costliest_first
+
+        costliest_first(items)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _sb3_logs_in_pytests_own_folder(tmp_path_factory):
     """Stable-Baselines3 makes an empty folder in the system's temporary directory for every

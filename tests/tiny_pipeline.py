@@ -1,6 +1,7 @@
 """The tests' tiny pipeline: the root pipeline on 2 detectors x 2 injectors at T=60, built by
 `dvc repro` in a throw-away git + DVC repository. tests/conftest.py builds it once a session
-(`built_repo`) for tests/pipeline/ and tests/api/test_evaluate.py."""
+(`built_repo`) for tests/pipeline/ and tests/api/test_evaluate.py; under `pytest -n N`
+tests/scheduling.py deals those modules to one worker, which builds it once a run."""
 
 from __future__ import annotations
 

@@ -1,0 +1,122 @@
+"""How `pytest -n N` (pytest-xdist) deals the tests out: a module at a time, the costliest first,
+so that no worker sits idle at the end while the other runs a long module it was dealt last.
+
+xdist's default (`--dist load`) sends each worker a quarter of its share of tests in file order,
+then more as it runs low. The suite's costliest modules sit late in that order
+(test_suite_run.py, last but a few, builds a suite serially and then in parallel), so a run ended
+on one busy worker; and a module's tests could be split between workers at a chunk's edge, each
+building the module's fixtures. Here a worker is dealt a whole module (or a group of modules that
+share a session fixture), the next when it is down to its last two tests, and the modules come
+costliest first (COST_S; a module without an entry that holds a `slow` test counts SLOW_S), the
+rest in file order. Every test still runs once, in its module's order.
+
+tests/conftest.py installs this in place of xdist's `--dist load`, what `-n N` alone gives;
+another `--dist`, `-n 0` and `-p no:xdist` keep xdist's own scheduling (or none).
+"""
+
+from __future__ import annotations
+
+import pytest
+
+#: Seconds a module's tests took (setup, call and teardown summed, `pytest -n 2 --durations=0`
+#: at 0416f8e) on a loaded 2-core machine, for the modules over 50 s (test_evaluate.py without
+#: the tiny pipeline it now shares). Only the order reads them: a stale or missing entry costs
+#: time, never a result.
+COST_S: dict[str, float] = {
+    "tests/test_suite_run.py": 1360,
+    "tests/test_protocol_every_environment.py": 889,
+    "tests/pipeline/test_pipeline.py": 867,
+    "tests/detectors/test_library.py": 696,
+    "tests/pipeline/test_failures.py": 622,
+    "tests/test_suite_try.py": 576,
+    "tests/metrics/test_leaderboard_rliable.py": 416,
+    "tests/pipeline/test_deps.py": 411,
+    "tests/test_remote.py": 389,
+    "tests/test_readme.py": 361,
+    "tests/test_new.py": 342,
+    "tests/test_fresh_check.py": 324,
+    "tests/api/test_quickstart.py": 256,
+    "tests/pipeline/test_environments.py": 224,
+    "tests/hostile/test_runtime_hostile.py": 186,
+    "tests/detectors/test_sanity.py": 180,
+    "tests/faults/test_remote_faults.py": 177,
+    "tests/test_readonly_remote.py": 163,
+    "tests/api/test_examples.py": 154,
+    "tests/pipeline/test_warm.py": 132,
+    "tests/test_suite.py": 129,
+    "tests/test_recorded.py": 126,
+    "tests/api/test_evaluate.py": 111,
+    "tests/injectors/test_every_environment.py": 111,
+    "tests/api/test_load_results.py": 104,
+    "tests/pipeline/test_recovery.py": 99,
+    "tests/detectors/test_machine_independence.py": 98,
+    "tests/test_impact.py": 89,
+    "tests/report/test_leaderboard_page.py": 79,
+    "tests/policies/test_train.py": 76,
+    "tests/test_cross_kernel.py": 73,
+    "tests/faults/test_machine_faults.py": 73,
+    "tests/test_numerics.py": 70,
+    "tests/hostile/test_suite_run_hostile.py": 60,
+    "tests/hostile/test_new_hostile.py": 59,
+    "tests/faults/test_runs.py": 54,
+    "tests/detectors/test_contract.py": 54,
+    "tests/hostile/test_suite_try_hostile.py": 51,
+}
+#: What a module without an entry in COST_S counts when it holds a test marked `slow`.
+SLOW_S = 50.0
+#: Modules that use one session fixture are dealt to one worker together, which builds it once:
+#: the tests' tiny pipeline (`built_repo`, tests/tiny_pipeline.py).
+GROUPS: dict[str, str] = {
+    module: "built_repo"
+    for module in (
+        "tests/api/test_evaluate.py",
+        "tests/pipeline/test_deps.py",
+        "tests/pipeline/test_failures.py",
+        "tests/pipeline/test_leaderboard_pipeline.py",
+        "tests/pipeline/test_pipeline.py",
+        "tests/pipeline/test_recovery.py",
+        "tests/pipeline/test_warm.py",
+    )
+}
+
+
+def module_of(nodeid: str) -> str:
+    return nodeid.split("::", 1)[0]
+
+
+def unit_of(nodeid: str) -> str:
+    """The unit a test is dealt in: its module's group, else its module."""
+    module = module_of(nodeid)
+    return GROUPS.get(module, module)
+
+
+def costliest_first(items: list[pytest.Item]) -> None:
+    """Reorder `items` in place: units costliest first, then in file order; within a unit its
+    modules and their tests keep their order (a module's tests stay together)."""
+    slow = {module_of(item.nodeid) for item in items if item.get_closest_marker("slow")}
+    cost: dict[str, float] = {}
+    first: dict[str, int] = {}
+    for index, module in enumerate(dict.fromkeys(module_of(item.nodeid) for item in items)):
+        unit = unit_of(module)
+        cost[unit] = cost.get(unit, 0.0) + COST_S.get(module, SLOW_S if module in slow else 0.0)
+        first.setdefault(unit, index)
+    order = {id(item): index for index, item in enumerate(items)}
+
+    def key(item: pytest.Item) -> tuple[float, int, int]:
+        unit = unit_of(item.nodeid)
+        return (-cost[unit], first[unit], order[id(item)])
+
+    items.sort(key=key)
+
+
+def module_scheduling(config: pytest.Config, log):
+    """xdist's scope scheduler with a unit (unit_of) as the scope, dealt in the order the
+    workers collected (costliest_first's) rather than by how many tests a scope holds."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return unit_of(nodeid)
+
+    config.option.loadscopereorder = False
+    return ModuleScheduling(config, log)
