@@ -778,16 +778,19 @@ def _settle_store_writes() -> None:
     main thread only, so without this a store's `finally` could remove its temporary folder
     while a write was still to land in it, and that write would re-create the folder. An
     interrupted command abandons the coroutines it had not yet handed over: no warning for them.
-    """
-    import asyncio
-    import contextlib
-    import warnings
 
-    warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
+    It runs in a signal handler, so it imports nothing: the signal may land inside an import, and
+    a second import from here would corrupt the first's bookkeeping (importlib's per-thread
+    record of the module lock it waits on: a KeyError) or find a module half made. A running
+    loop means zarr.core.sync, and with it asyncio, is already whole in sys.modules.
+    """
     # Absent when the command never touched a store; without its loop while it is imported.
     loop = getattr(sys.modules.get("zarr.core.sync"), "loop", [None])[0]
     if loop is None or not loop.is_running():
         return
+    asyncio, warnings = sys.modules["asyncio"], sys.modules["warnings"]  # asyncio imports warnings
+    contextlib = sys.modules["contextlib"]  # typer's, since start-up
+    warnings.filterwarnings("ignore", "coroutine .* was never awaited", RuntimeWarning)
 
     async def settled() -> None:
         while pending := asyncio.all_tasks() - {asyncio.current_task()}:
@@ -796,6 +799,23 @@ def _settle_store_writes() -> None:
     # A write that will not finish is no reason to keep the process alive.
     with contextlib.suppress(Exception):
         asyncio.run_coroutine_threadsafe(settled(), loop).result(timeout=5)
+
+
+def _importing_torch() -> bool:
+    """Whether torch is being imported (in sys.modules, its initialisation not finished)."""
+    spec = getattr(sys.modules.get("torch"), "__spec__", None)
+    return bool(getattr(spec, "_initializing", False))
+
+
+def _raised_while_unwinding(error: BaseException) -> bool:
+    """Whether `error` was raised while a KeyboardInterrupt (a signal, see `main`) unwound."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__context__
+    return False
 
 
 def main() -> None:
@@ -814,6 +834,11 @@ def main() -> None:
         received.append(signal.Signals(signum))
         if finished:
             return  # its outputs are whole; raising now would only print a traceback at exit
+        if _importing_torch():
+            # Raised inside torch's initialisation, the interrupt can abort the process (C++
+            # code that meets the pending exception terminates): deliver it once torch is whole.
+            deliver_again(0.05)
+            return
         _settle_store_writes()
         raise KeyboardInterrupt
 
@@ -824,9 +849,12 @@ def main() -> None:
         if not (received and issubclass(report.exc_type, KeyboardInterrupt)):
             default_unraisable(report)
         elif not finished:
-            redelivery = threading.Timer(0.01, os.kill, (os.getpid(), received[-1]))
-            redelivery.daemon = True
-            redelivery.start()
+            deliver_again(0.01)
+
+    def deliver_again(after_s: float) -> None:
+        redelivery = threading.Timer(after_s, os.kill, (os.getpid(), received[-1]))
+        redelivery.daemon = True
+        redelivery.start()
 
     def interrupted() -> NoReturn:
         # typer turns a KeyboardInterrupt into exit code 130 silently; say which signal it was.
@@ -862,6 +890,8 @@ def main() -> None:
     except Exception as error:
         if debug:
             raise
+        if received and _raised_while_unwinding(error):
+            interrupted()  # a library's clean-up that failed because the signal cut it short
         # A full disk, a refused permission, a read-only filesystem, too many open files: the
         # machine's fault, not oodrl's, named with its path and what to do (oodrl.faults); also
         # when a library wraps the OSError in an exception of its own.

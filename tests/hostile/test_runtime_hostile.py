@@ -312,6 +312,40 @@ def test_a_signal_where_python_cannot_raise_it_is_not_a_traceback(workdir):
     read_trajectories(workdir / "new.zarr", stage=None)
 
 
+# collect-eval with a signal that lands while torch initialises: sent, and torch's import held a
+# moment, from a finder importlib asks first for torch's C extension.
+SIGNAL_IN_TORCH = """
+import signal, sys, threading, time
+
+class Tripwire:
+    fired = False
+
+    def find_spec(self, name, path=None, target=None):
+        if name == "torch._C" and not self.fired:
+            self.fired = True
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+            time.sleep(0.3)  # the handler runs in here, inside torch's import
+            print("torch's import went on", file=sys.stderr)
+        return None
+
+sys.meta_path.insert(0, Tripwire())
+sys.argv = ["oodrl", "collect-eval", "--policy", "models/policy.pt", "--out", "new.zarr"]
+from oodrl.cli import main
+main()
+"""
+
+
+def test_a_signal_while_torch_initialises_waits_for_it(workdir):
+    """Raised inside torch's initialisation, an interrupt could abort the process (exit 134,
+    a C++ backtrace); it is delivered once torch is imported, and the command stops as any
+    other interrupted command: one line, nothing written."""
+    before = snapshot(workdir)
+    done = _driven(workdir, SIGNAL_IN_TORCH)
+    assert_one_line_error(done, 128 + signal.SIGTERM, "interrupted (SIGTERM)")
+    assert "torch's import went on" in done.stderr, done.stderr
+    assert {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} == set(before)
+
+
 def test_show_warns_when_the_results_inputs_changed(tmp_path):
     """`oodrl show` on a DVC output whose inputs changed since it was computed says so (a real
     git + DVC repository laid out as an oodrl project: a params edit reaches the results stage
