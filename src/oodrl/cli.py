@@ -723,13 +723,49 @@ def suite_run(
     ray: Annotated[
         str | None, typer.Option("--ray", help="a Ray cluster's HOST:PORT: one task per pipeline")
     ] = None,
+    commit: Annotated[
+        bool,
+        typer.Option(
+            "--commit",
+            help="commit each pipeline's locks and results as soon as it is built (one commit "
+            "each, naming it and the protocol version), and the leaderboard once every pipeline "
+            "is current: a run stopped at any point resumes in any clone",
+        ),
+    ] = False,
+    only: Annotated[
+        str | None,
+        typer.Option(
+            "--only",
+            metavar="PIPELINE[,...]",
+            help="build only these pipelines (., pipeline/<env>), if not current",
+        ),
+    ] = None,
+    max_hours: Annotated[
+        float | None,
+        typer.Option(
+            "--max-hours",
+            help="start no pipeline whose last build time would end it past this many hours "
+            "from the start (local workers); what is left is named",
+        ),
+    ] = None,
+    build_missing: Annotated[
+        bool,
+        typer.Option(
+            "--build-missing",
+            help="go on where a read-only remote refuses, or holds none of, what the pipelines "
+            "to build need: build it here, from scratch",
+        ),
+    ] = False,
     root: RootOption = Path("."),
 ) -> None:
-    """Build every pipeline of the suite in parallel, each in its own clone of HEAD, then the
-    leaderboard; the checkout ends with the dvc.lock files a serial build writes."""
+    """Build the pipelines of the suite that are not current (decided from git alone), each in
+    its own clone of HEAD, in parallel; then the leaderboard, once every pipeline is current.
+    The checkout ends with the dvc.lock files a serial build writes."""
     from oodrl.suite.run import run_suite
 
-    run_suite(root, workers=workers, ray_address=ray, echo=typer.echo)
+    run_suite(root, workers=workers, ray_address=ray, echo=typer.echo, commit=commit,
+              only=only.split(",") if only is not None else None, max_hours=max_hours,
+              build_missing=build_missing)  # fmt: skip
 
 
 @command("try", group=suite_app)

@@ -101,3 +101,113 @@ def bad_object(project: Path, environment: dict[str, str], remote, spawn) -> str
         f"holds only objects whose hash matches their name); repair or re-push that object at "
         f"the remote, then run again"
     )
+
+
+#: How many of the objects the pipelines to build need `unserved` asks an HTTP remote for, at
+#: most, and how many requests at once.
+SERVE_SAMPLE = 256
+SERVE_REQUESTS = 16
+
+
+def unserved(root: Path, remote, projects: list[str], timeout: float) -> str | None:
+    """Why a read-only HTTP remote will not serve the pipelines to build, in one line: it
+    refuses every object they need (HTTP 401, 403) or holds none of them; None where it serves
+    one, or names none to ask. DVC's HTTP filesystem reads a refusal as a missing object, so
+    `dvc pull --allow-missing` would pull nothing and every stage would run here, in silence.
+    The objects are those the projects' committed locks name (the outputs their pending stages
+    leave as they were come from there), asked for with HEAD at DVC's layout (files/md5/), a
+    few at a time, until one answers 200."""
+    import urllib.error
+    import urllib.request
+    from concurrent.futures import ThreadPoolExecutor
+
+    url = remote.options.get("url", "")
+    if url.split("://")[0].lower() not in ("http", "https"):
+        return None
+    oids = _locked_objects(root, projects)[:SERVE_SAMPLE]
+    if not oids:
+        return None
+    context = ssl_context(remote.options)
+    headers = _auth_headers(remote.options)
+
+    def status(oid: str) -> int | str:
+        where = f"{url.rstrip('/')}/files/md5/{oid[:2]}/{oid[2:]}"
+        request = urllib.request.Request(where, method="HEAD", headers=headers)
+        try:
+            urllib.request.urlopen(request, timeout=timeout, context=context).close()
+        except urllib.error.HTTPError as error:
+            return error.code
+        except OSError as error:  # URLError, a timeout
+            return str(getattr(error, "reason", None) or error)
+        return 200
+
+    answers: list[int | str] = []
+    with ThreadPoolExecutor(max_workers=SERVE_REQUESTS) as pool:
+        for chunk in range(0, len(oids), SERVE_REQUESTS):
+            answers += pool.map(status, oids[chunk : chunk + SERVE_REQUESTS])
+            if 200 in answers:
+                return None
+    where = f"DVC remote {remote.name!r} ({url})"
+    asked = f"{len(answers)} object{'s' * (len(answers) > 1)}"
+    refused = sorted({a for a in answers if a in (401, 403)})
+    if len(refused) and all(a in (401, 403) for a in answers):
+        return (f"{where} refuses the objects the pipelines to build need (HTTP "
+                f"{'/'.join(map(str, refused))} to each of the {asked} asked); check its URL and "
+                f"the credentials it wants (docs/how-to/remotes.md)")  # fmt: skip
+    kinds = ", ".join(sorted({f"HTTP {a}" if isinstance(a, int) else a for a in answers}))
+    return (f"{where} has none of the {asked} the committed locks of "
+            f"{', '.join(projects)} name ({kinds}); check that it is the remote their results "
+            f"were pushed to (`dvc push` where they were built)")  # fmt: skip
+
+
+def _locked_objects(root: Path, projects: list[str]) -> list[str]:
+    """The md5 of every output the projects' committed dvc.lock files name (a directory's by
+    its manifest, `.dir`), each once: a project's locks are the tracked ones whose nearest
+    folder holding a .dvc is the project's."""
+    import subprocess
+
+    import yaml
+
+    listed = subprocess.run(["git", "ls-files", "-z", "*dvc.lock"], cwd=root, capture_output=True,
+                            text=True, check=True).stdout.split("\0")  # fmt: skip
+    wanted = {(root / project).resolve() for project in projects}
+    oids: dict[str, None] = {}
+    for name in filter(None, listed):
+        lock = root / name
+        owner = next((d for d in lock.parents if (d / ".dvc").is_dir()), None)
+        if owner is None or owner.resolve() not in wanted:
+            continue
+        stages = (yaml.load(lock.read_text(), Loader=yaml.CSafeLoader) or {}).get("stages")
+        for stage in (stages or {}).values():
+            for out in stage.get("outs", []):
+                if out.get("md5"):
+                    oids.setdefault(out["md5"])
+    return list(oids)
+
+
+def ssl_context(options):
+    """The TLS context DVC's HTTP remote would use: its `ssl_verify` option is a bool or a CA
+    bundle."""
+    import ssl
+
+    verify = str(options.get("ssl_verify", "true"))
+    context = ssl.create_default_context(
+        cafile=None if verify.lower() in ("true", "false") else verify
+    )
+    if verify.lower() == "false":
+        context.check_hostname, context.verify_mode = False, ssl.CERT_NONE
+    return context
+
+
+def _auth_headers(options) -> dict[str, str]:
+    """The header DVC's HTTP remote sends for its `auth` option (basic, or custom with
+    `custom_auth_header`), where the password is configured."""
+    import base64
+
+    auth, password = options.get("auth"), options.get("password")
+    if auth == "basic" and password is not None:
+        token = base64.b64encode(f"{options.get('user', '')}:{password}".encode()).decode()
+        return {"Authorization": f"Basic {token}"}
+    if auth == "custom" and password is not None and options.get("custom_auth_header"):
+        return {options["custom_auth_header"]: password}
+    return {}

@@ -1,4 +1,16 @@
-"""`oodrl suite run` (SPEC §16): every pipeline of the suite in parallel, then the leaderboard.
+"""`oodrl suite run` (SPEC §16, §26): every pipeline of the suite that is not current, in
+parallel, then the leaderboard once every pipeline is current.
+
+Which pipelines are current is decided from git alone (`oodrl.suite.migration.project_states`:
+the committed locks against this commit's code stamps and params, the results' protocol stamps),
+not from `dvc status`, which reads outputs: a fresh clone with an empty cache has none, and a
+current pipeline is skipped without restoring or recomputing anything (`dvc pull` restores it
+when wanted). A pending pipeline (results of an older protocol) is built; so is a stale one
+(any other mismatch, e.g. a knob committed without its relock), except with `--commit`, which
+builds a migration's pending pipelines and nothing else. With `--commit` the head commits each
+pipeline's locks and results as soon as it has restored them, one commit a pipeline, and the
+leaderboard once every pipeline is current: a run stopped at any point resumes in any clone,
+having lost only the pipelines in progress.
 
 Each pipeline is a DVC project of its own (the root, `pipeline/<env>/`), all keeping outputs and
 run-cache in the root's cache. DVC refuses two `dvc repro` in one workspace, so each pipeline is
@@ -20,7 +32,11 @@ Three ways to share, chosen by what is configured:
   git-ignored .dvc/config.local), so one machine needs no remote and nothing is copied twice.
 - a read-only remote (an HTTP(S) URL, which DVC reads but a static server cannot write, or one
   that refuses the probe write): the clones pull from it into the head's cache and push nothing;
-  what it lacks is built locally. On Ray it is refused (the nodes would share nothing).
+  what it lacks is built locally. On Ray it is refused (the nodes would share nothing). One
+  that refuses every object the pipelines to build need (HTTP 401, 403), or holds none of
+  them, is named before any task starts and the run stops there, unless `--build-missing`
+  asks to build everything here (`oodrl.suite.remote_check.unserved`): DVC reads a refusal as
+  a missing object, and the whole suite would be rebuilt from scratch in silence.
 
 With a remote a task first pulls what the remote has (`dvc pull --allow-missing`), then runs
 `dvc repro --pull`. Not `dvc repro --pull --allow-missing`, DVC's own "fetch what is unchanged,
@@ -36,7 +52,6 @@ a remote is checked before any task starts (`_check_remote`).
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import re
@@ -430,36 +445,135 @@ def run_suite(
     workers: int = 2,
     ray_address: str | None = None,
     echo: Callable[[str], None] = print,
+    *,
+    only: Sequence[str] | None = None,
+    max_hours: float | None = None,
+    commit: bool = False,
+    build_missing: bool = False,
 ) -> SuiteRun:
-    """Build every pipeline of the suite (local workers, or Ray tasks), then the leaderboard."""
+    """Build the pipelines of the suite that are not current (local workers, or Ray tasks), then
+    the leaderboard once every pipeline is current (SPEC §26). `only` names the pipelines to
+    build; `max_hours` stops starting pipelines once their last build time would pass it;
+    `commit` commits each pipeline as soon as it is built; `build_missing` goes on where a
+    read-only remote holds nothing the pipelines to build need (`remote_check.unserved`)."""
     root = root.resolve()
     start = time.perf_counter()
     if workers < 1:
         raise ConfigError(f"--workers must be >= 1. Got {workers} instead.")
+    if max_hours is not None and not max_hours > 0:
+        raise ConfigError(f"--max-hours must be > 0. Got {max_hours} instead.")
+    if max_hours is not None and ray_address is not None:
+        raise ConfigError("--max-hours decides when a local worker starts a pipeline; with "
+                          "--ray every task starts at once: pick them with --only.")  # fmt: skip
+    pipelines = suite_pipelines(root)
+    chosen = _chosen(pipelines, only)
     from oodrl.suite.checkout_lock import checkout_lock
 
     with checkout_lock(root, "suite run"):
+        if commit:
+            _refuse_uncommittable(root)
         remove_dead_runs(root)
+        plan = _Plan(pipelines, chosen, max_hours * 3600 if max_hours else None, commit,
+                     build_missing)  # fmt: skip
         with _ending_processes_on_signals():
-            return _build_suite(root, workers, ray_address, echo, start)
+            return _build_suite(root, workers, ray_address, echo, start, plan)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What a run is asked to build: the suite's pipelines, those it may build (`--only`), its
+    budget in seconds, whether it commits each, whether it builds without a serving remote."""
+
+    pipelines: list[str]
+    chosen: list[str]
+    budget_s: float | None
+    commit: bool
+    build_missing: bool
+
+
+def _chosen(pipelines: list[str], only: Sequence[str] | None) -> list[str]:
+    """The pipelines `--only` names (all without it); an unknown name is one line."""
+    if only is None:
+        return pipelines
+    names = [os.path.normpath(name.strip()) for name in only if name.strip()]
+    unknown = [name for name in names if name not in pipelines]
+    if unknown or not names:
+        raise ConfigError(f"--only {','.join(unknown) or repr('')}: not a pipeline of the suite; "
+                          f"its pipelines: {', '.join(pipelines)} (the leaderboard is built "
+                          f"once every one is current).")  # fmt: skip
+    return [pipeline for pipeline in pipelines if pipeline in names]
+
+
+def _refuse_uncommittable(root: Path) -> None:
+    """--commit commits on the checkout's branch, one commit per pipeline holding its locks and
+    results alone: refused in one line, before anything runs, where git could not do so
+    cleanly: an operation in progress, a detached HEAD, an uncommitted change of a tracked
+    file, no committer identity."""
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return _spawn(["git", *args], root, dict(os.environ))
+
+    git_dir = root / git("rev-parse", "--git-dir").stdout.strip()
+    operations = {"MERGE_HEAD": "a merge", "rebase-merge": "a rebase", "rebase-apply": "a rebase",
+                  "CHERRY_PICK_HEAD": "a cherry-pick", "REVERT_HEAD": "a revert"}  # fmt: skip
+    for name, operation in operations.items():
+        if (git_dir / name).exists():
+            raise ConfigError(f"--commit: {root} is in the middle of {operation}; conclude it or "
+                              f"abort it first, then run again.")  # fmt: skip
+    if git("symbolic-ref", "-q", "HEAD").returncode != 0:
+        raise ConfigError(f"--commit: {root} has a detached HEAD; --commit commits on a branch: "
+                          f"`git switch -c NAME` (or switch to one) first.")  # fmt: skip
+    changed = git("status", "--porcelain", "--untracked-files=no").stdout.splitlines()
+    if changed:
+        paths = [line[3:] for line in changed]
+        raise ConfigError(f"--commit: {', '.join(paths[:3])}{' …' if len(paths) > 3 else ''}: "
+                          f"uncommitted; each commit holds one pipeline's locks and results "
+                          f"alone, so commit (or revert) these first.")  # fmt: skip
+    if git("var", "GIT_COMMITTER_IDENT").returncode != 0:
+        raise ConfigError("--commit: git has no committer identity here; set user.name and "
+                          "user.email (`git config`), then run again.")  # fmt: skip
 
 
 def _build_suite(
-    root: Path, workers: int, ray_address: str | None, echo: Callable[[str], None], start: float
+    root: Path,
+    workers: int,
+    ray_address: str | None,
+    echo: Callable[[str], None],
+    start: float,
+    plan: _Plan,
 ) -> SuiteRun:
-    from oodrl.io.fileio import atomic_write_text
+    from oodrl.suite.migration import project_states
     from oodrl.suite.pipeline import SUITE_DIR
 
-    pipelines = suite_pipelines(root)
+    pipelines = plan.pipelines
     projects = [*pipelines, SUITE_DIR.as_posix()]
-    if _unchanged_since_found_current(root, projects):
-        echo(f"suite: all {len(projects)} projects are up to date (no file DVC checks changed "
-             f"since they were found so); nothing to run")  # fmt: skip
+    # From the committed files alone (SPEC §26): nothing is restored or recomputed to know that
+    # a pipeline is current, so a fresh clone with an empty cache decides in seconds.
+    echo(f"suite: {len(projects)} projects; deciding from git which are current")
+    states = {state.project: state for state in project_states(root, pipelines)}
+    todo = [pipeline for pipeline in pipelines if states[pipeline].status != "current"]
+    stale = [pipeline for pipeline in todo if states[pipeline].status == "stale"]
+    if plan.commit and stale:  # what --commit would commit is a migration's step, nothing else
+        first, more = states[stale[0]], f" ({len(stale) - 1} more stale)" if stale[1:] else ""
+        raise ConfigError(f"{first.project}: stale ({_why_stale(first)}), not pending a protocol "
+                          f"change; --commit builds and commits pending pipelines only: relock "
+                          f"it as its change needs, or run without --commit{more}.")  # fmt: skip
+    building = [pipeline for pipeline in todo if pipeline in plan.chosen]
+    for pipeline in building:
+        state = states[pipeline]
+        why = f"built at protocol {state.built_version}"
+        why = _why_stale(state) if state.status == "stale" else why
+        echo(f"suite: {pipeline} is {state.status} ({why})")
+    version = target_version(root)
+    if not todo and _up_to_date(root / SUITE_DIR):
+        echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
         return SuiteRun((), (), time.perf_counter() - start)
-    # A word at once (importing DVC and asking the remote take seconds), then the remote and
-    # Ray, which need no `dvc status`: refused in seconds, not after the status checks.
-    echo(f"suite: {len(projects)} projects; checking the DVC remote"
-         f"{' and the Ray head' if ray_address is not None else ''} first")  # fmt: skip
+    if todo and not building:
+        echo(f"suite: nothing to build among {', '.join(plan.chosen)}; still to build: "
+             f"{', '.join(todo)}")  # fmt: skip
+        return SuiteRun((), (), time.perf_counter() - start)
+    # The remote and Ray need no DVC: refused in seconds, before anything is cloned.
+    echo(f"suite: checking the DVC remote{' and the Ray head' if ray_address is not None else ''}")
     if ray_address is not None:
         _check_reachable(ray_address)
     remote = default_remote(root)
@@ -475,65 +589,154 @@ def _build_suite(
                           f"--workers.")  # fmt: skip
     if read_only:
         remote = replace(remote, writable=False)
+        _check_serves(root, remote, building, plan.build_missing, echo)
         echo(f"suite: remote {remote.name!r} ({remote.options.get('url')}) is read-only "
              f"({read_only}): restoring from it, building what it lacks locally, pushing "
              f"nothing")  # fmt: skip
     shared_cache = None if ray_address else _cache_dir(root, projects)
-    echo(f"suite: checking {len(projects)} projects with dvc status ({workers} at a time)")
-    watched = _watched_files(root, projects)
-    before = _signature(root, watched)  # before the checks: a change during them shows next time
-    # One `dvc status` process a project, `workers` at a time: DVC's own index and output
-    # checks take seconds a project (about 4 s for 198 stages), so they bound a no-op run.
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        current = list(pool.map(lambda project: _up_to_date(root / project), projects))
-    if all(current):
-        found = {"projects": projects, "paths": watched, "signature": before}
-        atomic_write_text(root / FOUND_CURRENT, json.dumps(found))
-        echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
-        return SuiteRun((), (), time.perf_counter() - start)
     _refuse_uncommitted_inputs(root, projects)
-    # A current pipeline's task would clone it only to restore every stage from the cache: the
-    # head's checkout already is what that task would write.
-    stale = [pipeline for pipeline, ok in zip(pipelines, current, strict=False) if not ok]
-    if len(stale) < len(pipelines):
-        echo(f"suite: {len(pipelines) - len(stale)} of {len(pipelines)} pipelines are up to "
-             f"date; building the other {len(stale)}")  # fmt: skip
+    if building and len(building) < len(pipelines):
+        by_only = f" ({len(todo) - len(building)} left by --only)" if building != todo else ""
+        echo(f"suite: {len(pipelines) - len(todo)} of {len(pipelines)} pipelines are up to "
+             f"date; building the other {len(building)}{by_only}")  # fmt: skip
+    recorded = _recorded_builds(root) if plan.budget_s is not None or plan.commit else {}
     job = {
-        "bundle": _bundle(root),
+        "bundle": _bundle(root) if building else b"",
         "commit": _run(root, {}, "git", "rev-parse", "HEAD").stdout.strip(),
         "remote": remote,
         "shared_cache": shared_cache,
     }
+    not_started: list[str] = []
     if ray_address is None:
-        building = _local_tasks(root, stale, job, workers, echo)
+        may_start = _budget(root, building, recorded, plan.budget_s, start, not_started)
+        tasks_of = _local_tasks(root, building, job, workers, echo, may_start, recorded)
     else:
-        building = _ray_tasks(root, stale, job, ray_address, echo)
+        tasks_of = _ray_tasks(root, building, job, ray_address, echo, recorded)
     runs: list[PipelineRun] = []
+    head_ran: list[str] = []
     last_task_ended = start
+    leaderboard_seconds = 0.0
     # closing: an interruption or a failure while the head restores stops the tasks now.
-    with closing(building) as tasks, _dvc_config(remote) as env:
-
-        def restore(built: PipelineRun) -> float:
-            return restore_project(root, built, remote, env)
-
-        # Restored as each task ends, while the others run: projects are separate DVC
-        # workspaces. A later failure leaves the projects restored so far consistent (each
-        # one's locks and outputs are those of a finished `dvc repro`), the others untouched.
+    with closing(tasks_of) as tasks, _dvc_config(remote) as env:
+        # Restored (and committed) as each task ends, while the others run: projects are
+        # separate DVC workspaces. A later failure leaves the projects restored so far
+        # consistent (each one's locks and outputs are those of a finished `dvc repro`), the
+        # others untouched; with --commit, those restored so far committed.
         for built in tasks:
             last_task_ended = time.perf_counter()
-            runs.append(replace(built, files={}, restore_seconds=restore(built)))
-        began = time.perf_counter()
-        done = _from_remote(root / SUITE_DIR, env, remote, "repro",
-                            *(["--pull"] if remote else []))  # fmt: skip
-        head_ran = [f"{SUITE_DIR.as_posix()}:{stage}" for stage in ran_stages(done.stdout)]
-        leaderboard_seconds = time.perf_counter() - began
-        if remote and remote.writable:  # as a task pushes its project: a clone restores it
-            _push(root / SUITE_DIR, env)
+            restored = restore_project(root, built, remote, env)
+            runs.append(replace(built, files={}, restore_seconds=restored))
+            if plan.commit:
+                _commit_project(root, built.pipeline, built.files,
+                                f"suite run: {built.pipeline} built at protocol {version} in "
+                                f"{built.seconds:.0f} s")  # fmt: skip
+            echo(f"suite: {built.pipeline} done{', committed' if plan.commit else ''}; "
+                 f"{len(runs)} of {len(building)} done, "
+                 f"{len(building) - len(runs) - len(not_started)} to do, "
+                 f"{_clock(time.perf_counter() - start)} elapsed")  # fmt: skip
+        left = [pipeline for pipeline in todo if pipeline not in {r.pipeline for r in runs}]
+        if not left:  # every pipeline current: the leaderboard ranks them all
+            began = time.perf_counter()
+            done = _from_remote(root / SUITE_DIR, env, remote, "repro",
+                                *(["--pull"] if remote else []))  # fmt: skip
+            head_ran = [f"{SUITE_DIR.as_posix()}:{stage}" for stage in ran_stages(done.stdout)]
+            leaderboard_seconds = time.perf_counter() - began
+            if remote and remote.writable:  # as a task pushes its project: a clone restores it
+                _push(root / SUITE_DIR, env)
+            if plan.commit:
+                _commit_project(root, SUITE_DIR.as_posix(), checkout_files(root / SUITE_DIR),
+                                f"suite run: {SUITE_DIR.as_posix()} (the leaderboard) built at "
+                                f"protocol {version}, every pipeline current")  # fmt: skip
     end = time.perf_counter()
     after = end - last_task_ended
+    if left:
+        budget = f"--max-hours {plan.budget_s / 3600:g} reached; " if not_started else ""
+        echo(f"suite: {budget}{len(left)} pipelines left for another run: {', '.join(left)}; "
+             f"the leaderboard is built once every one is current")  # fmt: skip
     echo(f"suite: done in {end - start:.1f} s, {after:.1f} s of them after the last task; "
          f"the head ran {', '.join(head_ran) or 'nothing'}")  # fmt: skip
     return SuiteRun(tuple(runs), tuple(head_ran), end - start, after, leaderboard_seconds)
+
+
+def _why_stale(state) -> str:
+    """A stale pipeline's first reason, and how many more."""
+    more = len(state.reasons) - 1
+    return f"{state.reasons[0] if state.reasons else 'stale'}{f'; {more} more' if more > 0 else ''}"
+
+
+def _clock(seconds: float) -> str:
+    minutes, second = divmod(int(seconds), 60)
+    return f"{minutes // 60}:{minutes % 60:02d}:{second:02d}"
+
+
+def target_version(root: Path) -> int | None:
+    """The protocol version the checkout's own code stamps results with (its stages run it)."""
+    stamp = root / "src" / "oodrl" / "metrics" / "stamp.py"
+    found = re.search(r"^PROTOCOL_VERSION = (\d+)", _text_or_empty(stamp), re.MULTILINE)
+    return int(found[1]) if found else None
+
+
+#: The subject of the commit `--commit` makes for a pipeline: the next run reads each
+#: pipeline's last build time from it (a fresh clone has no reports/run_meta.yaml).
+COMMIT_SUBJECT = re.compile(r"^suite run: (\S+) built at protocol \d+ in (\d+) s$")
+
+
+def _commit_project(root: Path, project: str, files: Mapping[str, bytes], message: str) -> None:
+    """Commit a restored project's files that git does not ignore (its locks, the results DVC
+    does not cache, the .gitignore files beside its outputs), those paths alone."""
+    paths = sorted(os.path.normpath(os.path.join(project, name)) for name in files)
+    env = dict(os.environ)
+    ignored = _spawn(["git", "check-ignore", "--", *paths], root, env).stdout.splitlines()
+    paths = [path for path in paths if path not in set(ignored)]
+    _run(root, {}, "git", "add", "--", *paths)
+    if _spawn(["git", "diff", "--cached", "--quiet", "--", *paths], root, env).returncode == 0:
+        return  # built as committed: nothing to commit
+    _run(root, {}, "git", "commit", "-q", "-m", message, "--", *paths)
+
+
+def _recorded_builds(root: Path) -> dict[str, float]:
+    """Each pipeline's last build time that `--commit` recorded in git (COMMIT_SUBJECT)."""
+    done = _spawn(["git", "log", "--format=%s", "--grep=^suite run: "], root, dict(os.environ))
+    recorded: dict[str, float] = {}
+    for subject in done.stdout.splitlines():  # newest first
+        if (found := COMMIT_SUBJECT.match(subject)) and found[1] not in recorded:
+            recorded[found[1]] = float(found[2])
+    return recorded
+
+
+def _budget(
+    root: Path,
+    pipelines: list[str],
+    recorded: Mapping[str, float],
+    budget_s: float | None,
+    start: float,
+    not_started: list[str],
+) -> Callable[[str], bool]:
+    """Whether a worker free now may start a pipeline: while its last build time (or, never
+    built, the median of the others', else nothing) still fits in the budget; one that does not
+    is left for another run, in `not_started`."""
+    known = {p: s for p in pipelines if (s := _last_build_seconds(root, p, recorded)) < math.inf}
+    typical = sorted(known.values())[len(known) // 2] if known else 0.0
+    lock = threading.Lock()
+
+    def may_start(pipeline: str) -> bool:
+        if budget_s is None:
+            return True
+        fits = time.perf_counter() - start + known.get(pipeline, typical) <= budget_s
+        if not fits:
+            with lock:
+                not_started.append(pipeline)
+        return fits
+
+    return may_start
+
+
+def _last_build_seconds(root: Path, pipeline: str, recorded: Mapping[str, float]) -> float:
+    """The stage wall time of the pipeline's last build in this checkout (`total_stage_wall_s`
+    of its reports/run_meta.yaml), else the build time its last --commit recorded, else inf."""
+    meta = _text_or_empty(root / pipeline / RUN_META)
+    found = re.search(r"^total_stage_wall_s: ([0-9.]+)$", meta, re.MULTILINE)
+    return float(found[1]) if found else recorded.get(pipeline, math.inf)
 
 
 def restore_project(
@@ -566,37 +769,42 @@ def _finished(echo, pipeline: str, node: str, built: tuple) -> PipelineRun:
 
 
 def _local_tasks(
-    root: Path, pipelines: list[str], job: dict, workers: int, echo
+    root: Path,
+    pipelines: list[str],
+    job: dict,
+    workers: int,
+    echo,
+    may_start: Callable[[str], bool],
+    recorded: Mapping[str, float],
 ) -> Iterator[PipelineRun]:
-    def task(pipeline: str) -> PipelineRun:
+    def task(pipeline: str) -> PipelineRun | None:
+        if not may_start(pipeline):
+            return None
         echo(f"started  {pipeline}")
         return _finished(echo, pipeline, "local", build_pipeline(pipeline=pipeline, **job))
 
     pool = ThreadPoolExecutor(max_workers=workers)
     try:
-        futures = {
-            pool.submit(task, pipeline): pipeline for pipeline in _longest_first(root, pipelines)
-        }
+        order = _longest_first(root, pipelines, recorded)
+        futures = {pool.submit(task, pipeline): pipeline for pipeline in order}
         for future in as_completed(futures):
             if future.exception() is not None:
                 raise _task_failure(futures[future], future.exception())
-            yield future.result()
+            if future.result() is not None:
+                yield future.result()
     finally:
         # No new pipeline starts; running ones finish (or stop: an interruption ended them).
         pool.shutdown(cancel_futures=True)
 
 
-def _longest_first(root: Path, pipelines: list[str]) -> list[str]:
-    """Longest first, so that a long pipeline never starts last: by the stage wall time of its
-    last build in the checkout (`total_stage_wall_s` of its reports/run_meta.yaml); a pipeline
-    with none (never built here) counts as the longest. Ties keep the suite's order."""
-
-    def last_build_seconds(pipeline: str) -> float:
-        meta = root / pipeline / RUN_META
-        found = re.search(r"^total_stage_wall_s: ([0-9.]+)$", _text_or_empty(meta), re.MULTILINE)
-        return float(found[1]) if found else math.inf
-
-    return sorted(pipelines, key=lambda pipeline: -last_build_seconds(pipeline))
+def _longest_first(
+    root: Path, pipelines: list[str], recorded: Mapping[str, float] | None = None
+) -> list[str]:
+    """Longest first, so that a long pipeline never starts last: by its last build time
+    (`_last_build_seconds`); a pipeline with none (never built here) counts as the longest.
+    Ties keep the suite's order."""
+    known = recorded or {}
+    return sorted(pipelines, key=lambda pipeline: -_last_build_seconds(root, pipeline, known))
 
 
 def _text_or_empty(path: Path) -> str:
@@ -607,7 +815,7 @@ def _text_or_empty(path: Path) -> str:
 
 
 def _ray_tasks(
-    root: Path, pipelines: list[str], job: dict, address: str, echo
+    root: Path, pipelines: list[str], job: dict, address: str, echo, recorded: Mapping[str, float]
 ) -> Iterator[PipelineRun]:
     import ray
 
@@ -616,7 +824,7 @@ def _ray_tasks(
         remote_build = ray.remote(num_cpus=1, max_retries=RAY_MAX_RETRIES)(_ray_build)
         shared = {**job, "bundle": ray.put(job["bundle"])}
         names = {}
-        for pipeline in _longest_first(root, pipelines):
+        for pipeline in _longest_first(root, pipelines, recorded):
             echo(f"started  {pipeline}")
             names[remote_build.remote(pipeline=pipeline, **shared)] = pipeline
         pending = list(names)
@@ -690,68 +898,6 @@ def _up_to_date(project: Path) -> bool:
     return _spawn(command, project, task_environment(Path(_git_root(project)))).returncode == 0
 
 
-#: What the suite's projects looked like when every `dvc status` found them current.
-FOUND_CURRENT = Path(".dvc", "tmp", "oodrl-suite-current.json")  # DVC's git-ignored scratch
-#: A project's own files that `dvc status` reads, whatever its lock names.
-DVC_FILES = ("dvc.yaml", "dvc.lock", ".dvcignore")
-
-
-def _watched_files(root: Path, projects: list[str]) -> list[str]:
-    """Every path whose change `dvc status` of these projects could notice, relative to `root`:
-    each project's dvc.yaml, dvc.lock and .dvcignore, and every dep, params file and output its
-    lock names; a directory with every file and folder inside it (a folder's mtime moves when an
-    entry is added or removed). A project's locks name its paths, so while no watched file
-    changes, neither does this list."""
-    import yaml
-
-    watched: set[str] = set()
-    for project in projects:
-        watched.update(os.path.normpath(os.path.join(project, name)) for name in DVC_FILES)
-        lock_path = root / project / "dvc.lock"
-        if not lock_path.exists():
-            continue
-        lock = yaml.load(lock_path.read_text(), Loader=yaml.CSafeLoader) or {}
-        for stage in (lock.get("stages") or {}).values():
-            named = [e["path"] for e in [*stage.get("deps", []), *stage.get("outs", [])]]
-            for path in [*named, *stage.get("params", {})]:
-                watched.update(_with_contents(root, os.path.normpath(os.path.join(project, path))))
-    return sorted(watched)
-
-
-def _with_contents(root: Path, path: str) -> Iterator[str]:
-    yield path
-    for folder, subfolders, files in os.walk(root / path):
-        for name in [*subfolders, *files]:
-            yield Path(folder, name).relative_to(root).as_posix()
-
-
-def _signature(root: Path, paths: list[str]) -> list[list[int] | None]:
-    """(size, mtime, ctime, inode) of each path, None where there is none: the identity DVC's own
-    state database trusts to skip re-hashing a file, and its ctime besides."""
-    signature = []
-    for path in paths:
-        try:
-            found = os.stat(root / path)
-        except FileNotFoundError:
-            signature.append(None)
-            continue
-        signature.append([found.st_size, found.st_mtime_ns, found.st_ctime_ns, found.st_ino])
-    return signature
-
-
-def _unchanged_since_found_current(root: Path, projects: list[str]) -> bool:
-    """Whether every `dvc status` once found these projects current and no file it reads has
-    changed since: the stat of a few thousand paths instead of seconds of DVC a project. Any
-    doubt (no record, another suite, one changed file) means asking DVC again."""
-    try:
-        found = json.loads((root / FOUND_CURRENT).read_text())
-    except (FileNotFoundError, ValueError):
-        return False
-    return found.get("projects") == projects and found.get("signature") == _signature(
-        root, found.get("paths", [])
-    )
-
-
 def _refuse_uncommitted_inputs(root: Path, projects: list[str]) -> None:
     """The tasks build the head's commit, so an uncommitted edit of a tracked input (code,
     params, a DVC file) would be missing there. Locks and DVC outputs may differ: they are
@@ -822,17 +968,13 @@ def _check_answers(remote: Remote) -> None:
     """Any HTTP answer at the remote's URL passes (a bucket's HTTPS view answers 403 or 404 at
     its top); none is one line, where `dvc pull --allow-missing` would pass over it in silence
     and every stage would run."""
-    import ssl
     import urllib.error
     import urllib.request
 
+    from oodrl.suite.remote_check import ssl_context
+
     url = remote.options["url"]
-    verify = remote.options.get("ssl_verify", "true")  # DVC's option: a bool or a CA bundle
-    context = ssl.create_default_context(
-        cafile=None if verify.lower() in ("true", "false") else verify
-    )
-    if verify.lower() == "false":
-        context.check_hostname, context.verify_mode = False, ssl.CERT_NONE
+    context = ssl_context(remote.options)
     try:
         request = urllib.request.Request(url, method="HEAD")
         urllib.request.urlopen(request, timeout=REMOTE_ANSWER_S, context=context).close()
@@ -842,6 +984,23 @@ def _check_answers(remote: Remote) -> None:
         why = getattr(error, "reason", None) or error
         raise SuiteRunError(f"DVC remote {remote.name!r} ({url}) does not answer: "
                             f"{why}") from None  # fmt: skip
+
+
+def _check_serves(
+    root: Path, remote: Remote, pipelines: list[str], build_missing: bool, echo
+) -> None:
+    """A read-only remote that refuses, or holds none of, what the pipelines to build need
+    (`oodrl.suite.remote_check.unserved`) is one line before any stage runs; with
+    `build_missing` the line is said and the build goes on here."""
+    from oodrl.suite.remote_check import unserved
+
+    why = unserved(root, remote, pipelines, REMOTE_ANSWER_S)
+    if why is None:
+        return
+    if not build_missing:
+        raise SuiteRunError(f"{why}; or pass --build-missing to build what it lacks here, from "
+                            f"scratch.")  # fmt: skip
+    echo(f"suite: {why}; building what it lacks here (--build-missing)")
 
 
 def _check_writable(root: Path, remote: Remote) -> str | None:
