@@ -549,31 +549,10 @@ def _build_suite(
     projects = [*pipelines, SUITE_DIR.as_posix()]
     # From the committed files alone (SPEC §26): nothing is restored or recomputed to know that
     # a pipeline is current, so a fresh clone with an empty cache decides in seconds.
-    echo(f"suite: {len(projects)} projects; deciding from git which are current")
-    states = {state.project: state for state in project_states(root, pipelines)}
-    todo = [pipeline for pipeline in pipelines if states[pipeline].status != "current"]
-    stale = [pipeline for pipeline in todo if states[pipeline].status == "stale"]
-    if plan.commit and stale:  # what --commit would commit is a migration's step, nothing else
-        first, more = states[stale[0]], f" ({len(stale) - 1} more stale)" if stale[1:] else ""
-        raise ConfigError(f"{first.project}: stale ({_why_stale(first)}), not pending a protocol "
-                          f"change; --commit builds and commits pending pipelines only: relock "
-                          f"it as its change needs, or run without --commit{more}.")  # fmt: skip
-    building = [pipeline for pipeline in todo if pipeline in plan.chosen]
-    for pipeline in building:
-        state = states[pipeline]
-        why = f"built at protocol {state.built_version}"
-        why = _why_stale(state) if state.status == "stale" else why
-        echo(f"suite: {pipeline} is {state.status} ({why})")
-    version = target_version(root)
-    if not todo and _up_to_date(root / SUITE_DIR):
-        echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
-        return SuiteRun((), (), time.perf_counter() - start)
-    if todo and not building:
-        echo(f"suite: nothing to build among {', '.join(plan.chosen)}; still to build: "
-             f"{', '.join(todo)}")  # fmt: skip
-        return SuiteRun((), (), time.perf_counter() - start)
-    # The remote and Ray need no DVC: refused in seconds, before anything is cloned.
-    echo(f"suite: checking the DVC remote{' and the Ray head' if ray_address is not None else ''}")
+    # A word at once (importing DVC and asking the remote take seconds), then the remote and
+    # Ray: refused in seconds, before anything else.
+    echo(f"suite: {len(projects)} projects; checking the DVC remote"
+         f"{' and the Ray head' if ray_address is not None else ''} first")  # fmt: skip
     if ray_address is not None:
         _check_reachable(ray_address)
     remote = default_remote(root)
@@ -587,6 +566,26 @@ def _build_suite(
                           f"{remote.name!r} is read-only ({read_only}); give them one they can "
                           f"write (docs/how-to/remotes.md), or build on this machine with "
                           f"--workers.")  # fmt: skip
+    # From the committed files alone (SPEC §26): nothing is restored or recomputed to know that
+    # a pipeline is current, so a fresh clone with an empty cache decides in seconds.
+    states = {state.project: state for state in project_states(root, pipelines)}
+    echo(_states_line(states))
+    todo = [pipeline for pipeline in pipelines if states[pipeline].status != "current"]
+    stale = [pipeline for pipeline in todo if states[pipeline].status == "stale"]
+    if plan.commit and stale:  # what --commit would commit is a migration's step, nothing else
+        first, more = states[stale[0]], f" ({len(stale) - 1} more stale)" if stale[1:] else ""
+        raise ConfigError(f"{first.project}: stale ({_why_stale(first)}), not pending a protocol "
+                          f"change; --commit builds and commits pending pipelines only: relock "
+                          f"it as its change needs, or run without --commit{more}.")  # fmt: skip
+    building = [pipeline for pipeline in todo if pipeline in plan.chosen]
+    version = target_version(root)
+    if not todo and _up_to_date(root / SUITE_DIR):
+        echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
+        return SuiteRun((), (), time.perf_counter() - start)
+    if todo and not building:
+        echo(f"suite: nothing to build among {', '.join(plan.chosen)}; still to build: "
+             f"{', '.join(todo)}")  # fmt: skip
+        return SuiteRun((), (), time.perf_counter() - start)
     if read_only:
         remote = replace(remote, writable=False)
         _check_serves(root, remote, building, plan.build_missing, echo)
@@ -656,6 +655,19 @@ def _build_suite(
     echo(f"suite: done in {end - start:.1f} s, {after:.1f} s of them after the last task; "
          f"the head ran {', '.join(head_ran) or 'nothing'}")  # fmt: skip
     return SuiteRun(tuple(runs), tuple(head_ran), end - start, after, leaderboard_seconds)
+
+
+def _states_line(states: Mapping) -> str:
+    """Where the pipelines stand, in one line: how many are current, then the pending ones with
+    the version they were built at and the stale ones with their first reason."""
+    current = sum(state.status == "current" for state in states.values())
+    parts = [f"suite: from git, {current} of {len(states)} pipelines current"]
+    pending = [f"{s.project} (protocol {s.built_version})" for s in states.values()
+               if s.status == "pending"]  # fmt: skip
+    stale = [f"{s.project} ({_why_stale(s)})" for s in states.values() if s.status == "stale"]
+    parts += [f"pending: {', '.join(pending)}"] if pending else []
+    parts += [f"stale: {', '.join(stale)}"] if stale else []
+    return "; ".join(parts)
 
 
 def _why_stale(state) -> str:
