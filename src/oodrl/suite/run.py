@@ -547,8 +547,6 @@ def _build_suite(
 
     pipelines = plan.pipelines
     projects = [*pipelines, SUITE_DIR.as_posix()]
-    # From the committed files alone (SPEC §26): nothing is restored or recomputed to know that
-    # a pipeline is current, so a fresh clone with an empty cache decides in seconds.
     # A word at once (importing DVC and asking the remote take seconds), then the remote and
     # Ray: refused in seconds, before anything else.
     echo(f"suite: {len(projects)} projects; checking the DVC remote"
@@ -566,6 +564,11 @@ def _build_suite(
                           f"{remote.name!r} is read-only ({read_only}); give them one they can "
                           f"write (docs/how-to/remotes.md), or build on this machine with "
                           f"--workers.")  # fmt: skip
+    if read_only:
+        remote = replace(remote, writable=False)
+        echo(f"suite: remote {remote.name!r} ({remote.options.get('url')}) is read-only "
+             f"({read_only}): restoring from it, building what it lacks locally, pushing "
+             f"nothing")  # fmt: skip
     # From the committed files alone (SPEC §26): nothing is restored or recomputed to know that
     # a pipeline is current, so a fresh clone with an empty cache decides in seconds.
     states = {state.project: state for state in project_states(root, pipelines)}
@@ -586,12 +589,8 @@ def _build_suite(
         echo(f"suite: nothing to build among {', '.join(plan.chosen)}; still to build: "
              f"{', '.join(todo)}")  # fmt: skip
         return SuiteRun((), (), time.perf_counter() - start)
-    if read_only:
-        remote = replace(remote, writable=False)
+    if read_only:  # whether it holds what is to build is asked once that is known
         _check_serves(root, remote, building, plan.build_missing, echo)
-        echo(f"suite: remote {remote.name!r} ({remote.options.get('url')}) is read-only "
-             f"({read_only}): restoring from it, building what it lacks locally, pushing "
-             f"nothing")  # fmt: skip
     shared_cache = None if ray_address else _cache_dir(root, projects)
     _refuse_uncommitted_inputs(root, projects)
     if building and len(building) < len(pipelines):
