@@ -1,16 +1,18 @@
 """Small results are git-tracked outputs (SPEC §21): each committed one is the file its project's
 committed dvc.lock records, byte for byte (DVC's md5 of a file is that of its bytes), so a clone
-shows the numbers the locks stand for without computing anything."""
+shows the numbers the locks stand for without computing anything; pending projects' too, during a
+change of protocol (SPEC §26)."""
 
 from __future__ import annotations
 
 import hashlib
-import json
 import subprocess
 from pathlib import Path
 
 import yaml
 
+from oodrl.errors import ConfigError
+from oodrl.suite import migration
 from oodrl.suite.pipeline import pipeline_dirs
 
 
@@ -43,24 +45,21 @@ def test_every_committed_result_is_the_file_its_lock_records(repo_root):
     assert checked > 0, "no committed result was checked"
 
 
-def test_every_committed_lock_records_the_sources_of_this_commit(repo_root):
-    """check_params depends on oodrl's sources (an environment's project on each file, the root
-    on the directory): a commit that edits one and not the locks leaves every clone's `dvc repro`
-    re-running check_params and rewriting dvc.lock. The environments' file hashes are compared
-    here; the root's directory hash by DVC itself."""
-    stale = []
-    for project in pipeline_dirs(repo_root)[1:]:
-        stage = yaml.safe_load((project / "dvc.lock").read_text())["stages"]["check_params"]
-        for dep in stage["deps"]:
-            path = project / dep["path"]
-            if path.is_dir():  # a directory's hash is DVC's own
-                continue
-            if not path.is_file() or hashlib.md5(path.read_bytes()).hexdigest() != dep["md5"]:
-                stale.append(f"{project.name}: {dep['path']}")
-    assert not stale, f"relock check_params (dvc repro -s check_params) in: {stale[:5]}"
-    done = subprocess.run(
-        ["dvc", "status", "--json", "check_params"], cwd=repo_root, capture_output=True, text=True
+def test_every_project_is_current_or_pending_in_a_change_of_protocol(repo_root):
+    """Every project's committed locks are what `dvc repro` keeps (check_params' deps, the
+    source files and directory and the params files, as locked; every stage's command, deps,
+    params values and code stamps as its lock records), or its results are stamped at an older
+    protocol than this code's (SPEC §26). A commit that edits the sources without relocking
+    check_params fails here, naming each project and the file: every clone's `dvc repro` would
+    re-run check_params and rewrite dvc.lock. The root's directory hash is DVC's own (checked
+    against `dvc status` in tests/test_migration_state.py)."""
+    try:
+        states = migration.check(repo_root)
+    except ConfigError as error:
+        raise AssertionError(str(error)) from None
+    assert {state.status for state in states} <= {migration.CURRENT, migration.PENDING}
+    assert all(
+        state.built_version < migration.target_version()
+        for state in states
+        if state.status == migration.PENDING
     )
-    assert done.returncode == 0, done.stderr
-    changes = json.loads(done.stdout).get("check_params", [])
-    assert not [c for c in changes if isinstance(c, dict) and "changed deps" in c], changes

@@ -710,11 +710,14 @@ def pipeline_write(root: RootOption = Path(".")) -> None:
 
 @command("check", group=pipeline_app)
 def pipeline_check(root: RootOption = Path(".")) -> None:
-    """Fail unless every pipeline's dvc.yaml is what `oodrl pipeline write` writes."""
+    """Fail unless every pipeline's dvc.yaml is what `oodrl pipeline write` writes and every
+    project's locks are current, or pending in a change of protocol (SPEC §26)."""
+    from oodrl.suite.migration import summary
     from oodrl.suite.pipeline import check, pipeline_dirs
 
-    check(root)
-    typer.echo(f"{len(pipeline_dirs(root))} pipelines: every dvc.yaml is current")
+    states = check(root)
+    typer.echo(f"{len(pipeline_dirs(root))} pipelines: every dvc.yaml is current; "
+               f"{summary(states)}")  # fmt: skip
 
 
 @command("run", group=suite_app)

@@ -68,12 +68,12 @@ def target_version() -> int:
 
 
 def project_states(
-    root: Path, projects: Sequence[str] | None = None, *, stamps: bool = True
+    root: Path, projects: Sequence[str] | None = None, *, stamps: bool = False
 ) -> list[ProjectState]:
     """Each project's state (`projects`, or the suite's projects: the root and every run the
     leaderboard reads). With `stamps`, a project whose check_params deps moved has its code
-    stamps computed, so that its reasons say whether any stage's code changed or only
-    check_params needs relocking; without, the moved deps are the reasons (fast)."""
+    stamps computed (tens of seconds a project), so that its reasons name the stages whose code
+    changed, or say that none did; without, the moved deps are the reason."""
     from oodrl.suite.run import suite_pipelines
 
     root = Path(root).resolve()
@@ -161,20 +161,17 @@ def _lock_reasons(root: Path, directory: Path, stamps: bool) -> list[str]:
     ]
     computed: dict[str, str] | None = None
     if moved:
+        # A params file first: it is what a maintainer most often edits.
+        moved.sort(key=lambda path: not path.endswith((".yaml", ".yml")))
+        more = f" and {len(moved) - 1} more" if len(moved) > 1 else ""
+        reasons.append(f"{CHECK_STAGE}: {moved[0]}{more} changed since its lock")
         computed = _computed_stamps(directory) if stamps else None
-        if computed is None:
-            reasons += [f"{CHECK_STAGE}: {path} changed" for path in moved[:MAX_REASONS]]
-        else:
+        if computed is not None:
             locked_code = next(
                 (o["md5"] for o in check.get("outs", []) if _norm(o["path"]) == CODE_STAMPS), None
             )
             if _tree_md5(computed) == locked_code:
-                reasons.append(
-                    f"{CHECK_STAGE}: {len(moved)} deps changed ({moved[0]}…) and no code stamp: "
-                    f"relock check_params (dvc commit/repro -s check_params)"
-                )
-            else:
-                reasons.append(f"{CHECK_STAGE}: {moved[0]} changed and code stamps with it")
+                reasons.append("no code stamp changed with it")
     reasons += _stamp_reasons(locked, written)
     for stage in stages:
         lock = locked.get(stage.name)
@@ -446,3 +443,32 @@ def _tree_md5(files: Mapping[str, str | None]) -> str:
     """DVC's directory hash from relative path -> md5: md5 of the sorted JSON listing."""
     listing = [{"md5": md5, "relpath": path} for path, md5 in sorted(files.items())]
     return hashlib.md5(json.dumps(listing, sort_keys=True).encode()).hexdigest() + ".dir"
+
+
+def check(root: Path, *, stamps: bool = False) -> list[ProjectState]:
+    """Every project's state, or a ConfigError naming each stale project and why, one line a
+    project: a migration (projects pending at an older protocol) passes, nothing else does."""
+    states = project_states(root, stamps=stamps)
+    stale = [state for state in states if state.status == STALE]
+    if stale:
+        lines = "\n".join(state.line() for state in stale)
+        raise ConfigError(
+            f"{len(stale)} of {len(states)} projects are stale, built at protocol "
+            f"{target_version()} and not current (rebuild them: `oodrl suite run --only "
+            f"{','.join(state.project for state in stale)}`; a relock alone if only check_params "
+            f"moved):\n{lines}"
+        )
+    return states
+
+
+def summary(states: Sequence[ProjectState]) -> str:
+    """ "22 projects: 15 current, 7 pending at protocol 3 (target 4)"."""
+    current = sum(state.status == CURRENT for state in states)
+    pending = [state for state in states if state.status == PENDING]
+    older = sorted({state.built_version for state in pending})
+    built = [f"protocol {', '.join(str(v) for v in older if v != NOT_BUILT)}"] if any(older) else []
+    built += ["never built"] if NOT_BUILT in older else []
+    text = f"{len(states)} projects at target protocol {target_version()}: {current} current"
+    if pending:
+        text += f", {len(pending)} pending ({'; '.join(built)})"
+    return text

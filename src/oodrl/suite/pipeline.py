@@ -33,9 +33,12 @@ from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from oodrl.errors import ConfigError
+
+if TYPE_CHECKING:
+    from oodrl.suite.migration import ProjectState
 
 CLI_MODULE = "oodrl.cli"
 CODE_DIR = "src"  # the package sources' directory in the project
@@ -947,8 +950,10 @@ def _first_difference(expected: str, text: str) -> str:
     return f"unexpected {extra[0].strip()!r}" if extra else "lines in another order"
 
 
-def check(root: Path) -> None:
-    """Raise a one-line ConfigError unless every pipeline's dvc.yaml is up to date."""
+def check(root: Path) -> list[ProjectState]:
+    """Raise a one-line ConfigError unless every pipeline's dvc.yaml is up to date, and one
+    naming each stale project unless every project's committed locks are current or pending
+    in a change of protocol (`oodrl.suite.migration`, SPEC §26); each project's state."""
     for directory in pipeline_dirs(root):
         check_pipeline(directory / "dvc.yaml")
     for path, expected in subrepo_files(root / SUITE_DIR, root).items():
@@ -963,3 +968,6 @@ def check(root: Path) -> None:
             f"{SUITE_DIR / 'dvc.yaml'} is not what `oodrl pipeline write` writes "
             f"({_first_difference(rendered_suite(root), text)}); run `oodrl pipeline write`."
         )
+    from oodrl.suite import migration
+
+    return migration.check(root)

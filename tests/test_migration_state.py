@@ -1,0 +1,218 @@
+"""Where the suite stands in a change of protocol (SPEC §26): `oodrl.suite.migration` decides
+from git-tracked files alone whether a project is current, pending or stale, and every reader
+names the protocol version of what it prints.
+
+The project is the real CartPole pipeline, its tracked files as the commit that last relocked it
+wrote them (`git archive`: its locks, results, params and the sources they hash), edited the way
+a maintainer would edit it."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import pytest
+import yaml
+
+from oodrl.errors import ConfigError, StoreError
+from oodrl.metrics import stamp
+from oodrl.suite import migration
+
+PROJECT = "pipeline/cartpole"
+
+
+@pytest.fixture(scope="module")
+def archived(repo_root, tmp_path_factory) -> Path:
+    """The tracked files of pipeline/cartpole (and what its locks name) at its last relock."""
+    commit = subprocess.run(
+        ["git", "log", "-1", "--format=%H", "--", f"{PROJECT}/dvc.lock"],
+        cwd=repo_root, capture_output=True, text=True, check=True,
+    ).stdout.strip()  # fmt: skip
+    folder = tmp_path_factory.mktemp("archived")
+    paths = ["src", "params.yaml", "pipeline/params.yaml", PROJECT, "pipeline/suite/dvc.yaml"]
+    archive = subprocess.run(
+        ["git", "archive", commit, "--", *paths], cwd=repo_root, capture_output=True, check=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(folder)], input=archive, check=True)
+    return folder
+
+
+@pytest.fixture
+def repo(archived, tmp_path) -> Path:
+    copy = tmp_path / "repo"
+    subprocess.run(["cp", "-a", str(archived), str(copy)], check=True)
+    return copy
+
+
+def state(repo: Path, **options) -> migration.ProjectState:
+    (found,) = migration.project_states(repo, [PROJECT], **options)
+    return found
+
+
+def edit(path: Path, old: str, new: str) -> None:
+    text = path.read_text()
+    assert old in text, f"{path} lacks {old!r}"
+    path.write_text(text.replace(old, new, 1))
+
+
+def test_a_project_as_its_relock_left_it_is_current(repo):
+    found = state(repo)
+    assert found == migration.ProjectState(PROJECT, "current", stamp.PROTOCOL_VERSION, ())
+    # The copy holds no other project's results: never built, pending, which the check allows.
+    states = migration.check(repo)
+    assert migration.summary(states) == (
+        f"22 projects at target protocol {stamp.PROTOCOL_VERSION}: 1 current, 21 pending "
+        f"(never built)"
+    )
+
+
+def test_an_edited_param_makes_it_stale_naming_the_file(repo):
+    edit(repo / PROJECT / "params.yaml", "  T: 500 ", "  T: 499 ")
+    found = state(repo)
+    assert found.status == "stale" and found.built_version == stamp.PROTOCOL_VERSION
+    assert found.reasons == ("check_params: params.yaml changed since its lock",)
+
+
+def test_an_edited_source_makes_it_stale_naming_the_file(repo):
+    kde = repo / "src" / "oodrl" / "detectors" / "kde.py"
+    kde.write_text(kde.read_text() + "# an edit\n")
+    found = state(repo)
+    assert found.status == "stale"
+    assert found.reasons == (
+        "check_params: ../../src/oodrl/detectors/kde.py changed since its lock",
+    )
+
+
+def test_a_lock_edited_by_hand_is_stale_naming_the_stage_and_key(repo):
+    lock = repo / PROJECT / "dvc.lock"
+    edit(lock, "      data.n_id: 30\n", "      data.n_id: 31\n")
+    found = state(repo)
+    assert found.status == "stale"
+    assert (
+        found.reasons[0] == "collect_id: param data.n_id (data/params.yaml) is not the locked value"
+    )
+
+
+def test_a_committed_result_that_is_not_its_locks_is_stale(repo):
+    results = repo / PROJECT / "reports" / "results.yaml"
+    results.write_text(results.read_text() + "# edited\n")
+    found = state(repo)
+    assert found.reasons == ("metrics: reports/results.yaml is not what its lock records",)
+
+
+def test_stages_whose_stamps_are_not_check_params_ones_are_stale(repo):
+    """A stage relocked alone (`dvc commit` of one stage) against other code: its stamp dep is
+    not the one check_params' lock records, though every file is as locked."""
+    lock = repo / PROJECT / "detectors" / "kde_density" / "dvc.lock"
+    document = yaml.safe_load(lock.read_text())
+    dep = document["stages"]["fit"]["deps"][0]
+    assert dep["path"] == "data/code/fit-kde_density.txt"
+    edit(lock, dep["md5"], "0" * 32)
+    found = state(repo)
+    assert found.status == "stale"
+    assert "the stages' code stamps are not the ones check_params last wrote" in found.reasons[0]
+
+
+def test_a_bump_makes_the_project_pending_whatever_its_locks(repo, monkeypatch):
+    monkeypatch.setattr(stamp, "PROTOCOL_VERSION", stamp.PROTOCOL_VERSION + 1)
+    edit(repo / PROJECT / "params.yaml", "  T: 500 ", "  T: 499 ")  # pending: stale in any way
+    version = stamp.PROTOCOL_VERSION - 1
+    found = state(repo)
+    assert found == migration.ProjectState(
+        PROJECT,
+        "pending",
+        version,
+        (f"reports/results.yaml: protocol {version}, the target is {version + 1}",),
+    )
+
+
+def test_results_newer_than_the_code_are_stale(repo, monkeypatch):
+    monkeypatch.setattr(stamp, "PROTOCOL_VERSION", stamp.PROTOCOL_VERSION - 1)
+    found = state(repo)
+    assert found.status == "stale"
+    assert "newer than this code's" in found.reasons[0]
+
+
+def test_the_check_names_each_stale_project_in_a_line(repo):
+    edit(repo / PROJECT / "params.yaml", "  T: 500 ", "  T: 499 ")
+    with pytest.raises(ConfigError) as error:
+        migration.check(repo)  # the other projects are not in the copy: never built, pending
+    lines = str(error.value).splitlines()
+    assert lines[0].startswith("1 of 22 projects are stale")
+    assert lines[1:] == [
+        f"{PROJECT}: stale (protocol 3): check_params: params.yaml changed since its lock"
+    ]
+
+
+def test_an_unknown_project_is_one_line(repo):
+    with pytest.raises(ConfigError) as error:
+        migration.project_states(repo, ["pipeline/nope"])
+    assert "\n" not in str(error.value)
+    assert str(error.value).startswith("pipeline/nope: not a project of the suite")
+
+
+@pytest.mark.slow
+def test_dvc_agrees_on_current_and_stale(repo):
+    """`dvc repro --allow-missing --dry` in a git repository of the copy, no DVC output in it:
+    up to date exactly when the project is current."""
+
+    def dvc_up_to_date() -> bool:
+        done = subprocess.run(
+            ["dvc", "repro", "--allow-missing", "--dry"],
+            cwd=repo / PROJECT, capture_output=True, text=True, check=True,
+        )  # fmt: skip
+        return "Data and pipelines are up to date" in done.stdout
+
+    for command in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "c"]):
+        subprocess.run(command, cwd=repo, check=True, capture_output=True)
+    assert state(repo).status == "current" and dvc_up_to_date()
+    edit(repo / PROJECT / "params.yaml", "  T: 500 ", "  T: 499 ")
+    assert state(repo).status == "stale" and not dvc_up_to_date()
+
+
+# -- every reader names the version -------------------------------------------------------------
+def test_load_results_has_a_protocol_column(repo):
+    import oodrl
+
+    frame = oodrl.load_results(repo / PROJECT)
+    assert set(frame.protocol) == {stamp.PROTOCOL_VERSION}
+    assert frame.attrs["protocol_version"] == stamp.PROTOCOL_VERSION
+
+
+def test_load_results_refuses_the_suite_s_runs_of_two_versions(repo_root, tmp_path):
+    """During a change of protocol the suite's pipelines hold two versions: no frame mixes
+    them (one line, naming both). The suite's real pipeline files; results files with no
+    records, one at the previous version."""
+    import oodrl
+    from oodrl.suite.environments import suite_runs
+
+    runs = list(suite_runs().values())
+    paths = ["pipeline/suite", "pipeline/params.yaml", "params.yaml"]
+    paths += [f"{run}/{name}" for run in runs for name in ("params.yaml", "dvc.yaml")]
+    archive = subprocess.run(
+        ["git", "archive", "HEAD", "--", *paths], cwd=repo_root, capture_output=True, check=True
+    ).stdout
+    subprocess.run(["tar", "-x", "-C", str(tmp_path)], input=archive, check=True)
+    version = stamp.PROTOCOL_VERSION
+    for run in runs:
+        (tmp_path / run / "reports").mkdir(parents=True, exist_ok=True)
+        older = run == runs[0]
+        text = f"protocol_version: {version - older}\nrecords: []\n"
+        (tmp_path / run / "reports" / "results.yaml").write_text(text)
+    with pytest.raises(StoreError) as error:
+        oodrl.load_results(tmp_path / "pipeline" / "suite", kind="results")
+    message = str(error.value)
+    assert "\n" not in message and "cannot be ranked together" in message
+    assert f"version {version - 1}: {tmp_path / runs[0] / 'reports' / 'results.yaml'}" in message
+    (tmp_path / runs[0] / "reports" / "results.yaml").write_text(
+        f"protocol_version: {version}\nrecords: []\n"
+    )
+    frame = oodrl.load_results(tmp_path / "pipeline" / "suite", kind="results")
+    assert frame.empty and frame.attrs["protocol_version"] == version
+
+
+def test_show_names_the_version(repo):
+    from oodrl.report.show import show
+
+    results = repo / PROJECT / "reports" / "results.yaml"
+    assert show(results).splitlines()[0] == f"Protocol version {stamp.PROTOCOL_VERSION}."
