@@ -1,7 +1,7 @@
-"""benchmarks/fresh_check.py (issue 39, item 7) as a user runs it: a subprocess on a tiny real
-pipeline (CartPole with its committed policy, 2 detectors, 1 fault, T = 60), built once for this
-module up to `tier_metrics`. CartPole, not the root's LunarLander: the impact stage rolls whole
-episodes, and CartPole's cost a fraction of LunarLander's."""
+"""benchmarks/fresh_check.py (issue 39, item 7) as a user runs it: a subprocess on the tests'
+tiny pipeline (`built_repo`, tests/tiny_pipeline.py: LunarLander with its committed policy, 2
+detectors, T = 60), built once a session and shared with tests/pipeline/; the check reads it and
+writes nothing there. One fault of its two (`--faults`): the tier check rolls whole episodes."""
 
 from __future__ import annotations
 
@@ -14,49 +14,34 @@ from pathlib import Path
 
 import pytest
 import yaml
-
-from oodrl.config import parse_params, read_params_data
-from oodrl.testing.pipeline import TINY_TIERS, copy_project, repro
+from tiny_pipeline import DETECTORS
 
 pytestmark = pytest.mark.slow
 
-ENVIRONMENT = "pipeline/cartpole"
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "fresh_check.py"
-DETECTORS = ["mahalanobis_distance", "kde_density"]
 FAULTS = ["stuck_actuator"]
 STREAMS, EPISODES = 7, 3
 
 
-def tiny_params(default: dict) -> dict:
-    params = json.loads(json.dumps(default))
-    params["env"]["T"] = 60
-    params["data"].update(n_id=4, n_ood=3)
-    params["anomaly"]["sweep"] = [0.6]
-    params["benchmark"] = {"detectors": DETECTORS, "injectors": FAULTS}
-    params["metrics"]["n_boot"] = 20
-    params["executor"]["workers"] = 1
-    params["tiers"].update(TINY_TIERS)
-    # Every key written out, defaults included: a stage's `params:` may name a key the shared
-    # params file leaves to its default, and DVC reads only what the file holds.
-    return parse_params(params, components=False).model_dump(mode="json")
+def _files(directory: Path) -> dict[str, tuple[int, int]]:
+    return {
+        p.relative_to(directory).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns)
+        for p in directory.rglob("*")
+        if p.is_file()
+    }
 
 
-@pytest.fixture(scope="module")
-def pipeline(tmp_path_factory, repo_root) -> Path:
-    if not (repo_root / ENVIRONMENT / "models" / "policy.pt").is_file():
-        pytest.skip(f"{ENVIRONMENT}/models/policy.pt is not committed")
-    cartpole = repo_root / ENVIRONMENT
-    default = read_params_data(cartpole / "params.yaml")  # its `extends` merged
-    default.pop("extends", None)
-    repo = copy_project(repo_root, tmp_path_factory.mktemp("fresh") / "repo", tiny_params(default))
-    for name in ("policy.pt", "policy.json"):  # train_policy keeps it: trained with these settings
-        shutil.copy2(cartpole / "models" / name, repo / "models" / name)
-    repro(repo, "tier_metrics")
-    return repo
+@pytest.fixture
+def pipeline(built_repo) -> Path:
+    """The tiny pipeline, checked to be as it was after the test: others read and copy it."""
+    before = _files(built_repo)
+    yield built_repo
+    assert _files(built_repo) == before, "fresh_check.py wrote into the pipeline's directory"
 
 
 def fresh_check(directory: Path, *args: str) -> subprocess.CompletedProcess:
-    command = [sys.executable, str(SCRIPT), "--pipeline", ".", "--workers", "1", *args]
+    command = [sys.executable, str(SCRIPT), "--pipeline", ".", "--workers", "1", "--faults",
+               *FAULTS, *args]  # fmt: skip
     return subprocess.run(command, cwd=directory, capture_output=True, text=True, timeout=600)
 
 
@@ -121,18 +106,34 @@ def test_tables_count_what_was_asked(pipeline, tmp_path):
     assert {r["detector"]: r["threshold"] for r in result["false_alarms"]} == committed_thresholds
 
 
+@pytest.fixture(scope="module")
+def script():
+    """The script as a module, for what its process would only wrap (`sys.exit(main())`)."""
+    spec = importlib.util.spec_from_file_location("fresh_check", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 @pytest.mark.parametrize(
     ("offset", "overlapped"),
     [(0, "ID streams"), (10_000 - STREAMS + 1, "evaluation streams"),
      (20_000, "tier calibration streams"), (50, "policy's impact episodes"),
      (100_000, "policy's tuning episodes")],
 )  # fmt: skip
-def test_an_offset_onto_protocol_seeds_is_refused(pipeline, offset, overlapped):
-    done = fresh_check(pipeline, "--streams", str(STREAMS), "--episodes", str(EPISODES),
-                       "--seed-offset", str(offset))  # fmt: skip
-    assert done.returncode == 2
-    assert done.stdout == ""
-    lines = done.stderr.strip().splitlines()
+def test_an_offset_onto_protocol_seeds_is_refused(
+    built_repo, script, tmp_path, monkeypatch, capsys, offset, overlapped
+):
+    """The seeds are checked from the params alone, before anything is read; in-process (the
+    tests around run the script as a process, its exit codes and one-line errors included)."""
+    shutil.copy2(built_repo / "params.yaml", tmp_path / "params.yaml")
+    monkeypatch.chdir(tmp_path)
+    args = ["--streams", str(STREAMS), "--episodes", str(EPISODES), "--seed-offset", str(offset)]
+    code = script.main(["--pipeline", ".", "--workers", "1", "--faults", *FAULTS, *args])
+    out, err = capsys.readouterr()
+    assert code == 2
+    assert out == ""
+    lines = err.strip().splitlines()
     assert len(lines) == 1
     assert lines[0].startswith(f"error: --seed-offset {offset}: ")
     assert overlapped in lines[0]
@@ -150,12 +151,10 @@ def test_a_missing_output_is_one_line_naming_its_restore(pipeline, tmp_path):
     assert "reports/tier_results.yaml" in lines[0] and "dvc checkout" in lines[0]
 
 
-def test_a_tier_is_judged_by_its_interval_against_the_band():
+def test_a_tier_is_judged_by_its_interval_against_the_band(script):
     """Within only when the whole interval is inside level ± 0.02 (or a step's band), a miss only
     when it is wholly outside; otherwise the episodes cannot tell."""
-    spec = importlib.util.spec_from_file_location("fresh_check", SCRIPT)
-    check = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(check)
+    check = script
     assert check.tier_verdict(0.935, 0.965, 0.95, 0.95, None, 600) == "within 0.02"
     assert check.tier_verdict(0.945, 1.000, 0.974, 0.95, None, 150) == "undecided at 150 episodes"
     assert check.tier_verdict(0.760, 0.786, 0.774, 0.75, None, 150) == "undecided at 150 episodes"
