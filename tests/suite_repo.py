@@ -6,6 +6,8 @@ other people have in the working tree never reach a test build."""
 from __future__ import annotations
 
 import atexit
+import json
+import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -14,7 +16,10 @@ from oodrl.testing.pipeline import TINY_TIERS
 from oodrl.testing.suite import SUITE, code_env, head_commit, locks, serial_build, suite_copy
 
 PIPELINES = [".", "pipeline/cartpole"]
-__all__ = ["SUITE", "checkout", "code_env", "head_commit", "locks", "serial_suite"]
+__all__ = [
+    "SUITE", "checkout", "code_env", "copy_built", "head_commit", "locks", "run_folder",
+    "serial_built_suite", "serial_suite",
+]  # fmt: skip
 
 
 def _tiny(params: dict) -> None:
@@ -60,6 +65,41 @@ def serial_suite(repo: Path) -> list[str]:
     """The reference: `dvc repro` of each project in turn, then the suite's; what ran."""
     built = serial_build(repo, PIPELINES)
     return [f"{project}:{stage}" for project, (_, ran) in built.items() for stage in ran]
+
+
+def run_folder(tmp_path_factory) -> Path:
+    """A folder every process of this test run sees: pytest's base temporary directory, or
+    under pytest-xdist the run's, above each worker's own."""
+    here = tmp_path_factory.getbasetemp()
+    return here.parent if os.environ.get("PYTEST_XDIST_WORKER") else here
+
+
+def serial_built_suite(source: Path, commit: str, shared: Path) -> tuple[Path, list[str]]:
+    """The two-environment suite built by `serial_suite` (each project's `dvc repro` in turn),
+    and what ran: read it, or `copy_built` it to change it. The build takes minutes of one
+    core, so a test run makes it once, in `shared` (`run_folder`): the first process to ask
+    builds it, the others wait for it."""
+    from filelock import FileLock
+
+    made = shared / f"serial-suite-{commit}"
+    with FileLock(f"{made}.lock"):
+        if not (made / "ran.json").is_file():
+            shutil.rmtree(made, ignore_errors=True)  # a build that died half-way
+            repo = two_environment_suite(source, commit, made / "repo")
+            ran = serial_suite(repo)
+            assert f"{SUITE}:leaderboard" in ran and len(ran) > 20, ran
+            (made / "ran.json").write_text(json.dumps(ran))
+    return made / "repo", json.loads((made / "ran.json").read_text())
+
+
+def copy_built(built: Path, dest: Path) -> Path:
+    """A copy of a built suite, byte for byte with its DVC cache and git index, but DVC's
+    scratch (.dvc/tmp: locks, indexes), which DVC makes anew."""
+
+    def scratch(folder: str, names: list[str]) -> list[str]:
+        return ["tmp"] if Path(folder).name == ".dvc" and "tmp" in names else []
+
+    return Path(shutil.copytree(built, dest, symlinks=True, ignore=scratch))
 
 
 def checkout(repo: Path) -> dict[Path, bytes]:

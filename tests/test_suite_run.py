@@ -3,19 +3,32 @@ leaderboard; the head's checkout ends with the dvc.lock files of a serial run, b
 
 from __future__ import annotations
 
-import pickle
 import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
-from suite_repo import SUITE, checkout, head_commit, locks, serial_suite, two_environment_suite
+from suite_repo import (
+    SUITE,
+    checkout,
+    head_commit,
+    locks,
+    run_folder,
+    serial_built_suite,
+    two_environment_suite,
+)
 from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
 from oodrl.cli import app
-from oodrl.suite.run import RUN_META, _unchanged_since_found_current, _up_to_date, run_suite
+from oodrl.suite.run import (
+    RUN_META,
+    _check_reachable,
+    _unchanged_since_found_current,
+    _up_to_date,
+    run_suite,
+)
 from oodrl.testing.pipeline import run
 
 pytestmark = pytest.mark.slow
@@ -27,22 +40,11 @@ def commit(repo_root) -> str:
 
 
 @pytest.fixture(scope="session")
-def serial_locks(tmp_path_factory, repo_root, commit, worker_id) -> dict[str, bytes]:
-    """The locks a serial build of the two-environment suite writes. Built once per test run:
-    under pytest-xdist each worker has its own session, so the first to ask builds and the
-    others wait and read its locks (a serial build takes minutes of one core)."""
-    from filelock import FileLock
-
-    this_run = tmp_path_factory.getbasetemp()  # under xdist: this worker's, in the run's
-    shared = this_run if worker_id == "master" else this_run.parent
-    stored = shared / f"serial-locks-{commit}.pickle"
-    with FileLock(f"{stored}.lock"):
-        if not stored.exists():
-            repo = two_environment_suite(repo_root, commit, shared / "serial" / "repo")
-            ran = serial_suite(repo)
-            assert f"{SUITE}:leaderboard" in ran and len(ran) > 20
-            stored.write_bytes(pickle.dumps(locks(repo)))
-        return pickle.loads(stored.read_bytes())
+def serial_locks(tmp_path_factory, repo_root, commit) -> dict[str, bytes]:
+    """The locks a serial build of the two-environment suite writes: the build a test run makes
+    once (suite_repo.serial_built_suite; test_suite_try and test_remote copy it too)."""
+    built, _ = serial_built_suite(repo_root, commit, run_folder(tmp_path_factory))
+    return locks(built)
 
 
 @pytest.fixture
@@ -161,6 +163,7 @@ def test_ray_tasks_survive_a_node_killed_mid_task(fresh_suite, serial_locks, ray
     from oodrl.testing.pipeline import run
 
     cluster, (doomed, survivor) = ray_cluster
+    _check_reachable(cluster.address)  # a real Ray head passes the handshake: no error
     (tmp_path / "remote").mkdir()  # oodrl creates no remote (SPEC §22)
     run(fresh_suite, "dvc", "remote", "add", "--local", "-d", "lab", str(tmp_path / "remote"))
     start = time.time()

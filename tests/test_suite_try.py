@@ -10,13 +10,19 @@ from pathlib import Path
 
 import pytest
 import yaml
-from suite_repo import SUITE, head_commit, two_environment_suite
+from suite_repo import (
+    SUITE,
+    copy_built,
+    head_commit,
+    run_folder,
+    serial_built_suite,
+    two_environment_suite,
+)
 from typer.testing import CliRunner
 
 from oodrl.cli import app
 from oodrl.errors import ConfigError
-from oodrl.testing.pipeline import repro, run
-from oodrl.testing.suite import code_env
+from oodrl.testing.pipeline import run
 
 SUITE_PARAMS = "pipeline/params.yaml"
 CARTPOLE = "pipeline/cartpole"
@@ -115,11 +121,10 @@ def test_a_bad_class_or_a_taken_name_is_refused(unbuilt_suite, args, needle):
 
 @pytest.fixture(scope="module")
 def built_suite(repo_root, commit, tmp_path_factory) -> Path:
-    """The tiny suite with CartPole's pipeline and the leaderboard built and committed, as a
-    lab's checkout is after `oodrl suite run` (the root's pipeline is no run of the suite)."""
-    repo = two_environment_suite(repo_root, commit, tmp_path_factory.mktemp("built") / "repo")
-    for project in (CARTPOLE, SUITE):
-        repro(repo / project, env=code_env(repo))
+    """The tiny suite built and committed, as a lab's checkout is after `oodrl suite run`: a
+    copy of the serial build a test run makes once (suite_repo.serial_built_suite)."""
+    built, _ = serial_built_suite(repo_root, commit, run_folder(tmp_path_factory))
+    repo = copy_built(built, tmp_path_factory.mktemp("built") / "repo")
     run(repo, "git", "add", "-A")
     run(repo, "git", "commit", "-q", "-m", "the tiny suite, built")
     return repo
