@@ -8,6 +8,7 @@ a maintainer would edit it."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 from pathlib import Path
 
@@ -212,7 +213,87 @@ def test_load_results_refuses_the_suite_s_runs_of_two_versions(repo_root, tmp_pa
 
 
 def test_show_names_the_version(repo):
-    from oodrl.report.show import show
+    from typer.testing import CliRunner
+
+    from oodrl.cli import app
 
     results = repo / PROJECT / "reports" / "results.yaml"
-    assert show(results).splitlines()[0] == f"Protocol version {stamp.PROTOCOL_VERSION}."
+    done = CliRunner().invoke(app, ["show", str(results)])
+    assert done.exit_code == 0, done.output
+    assert done.stdout.splitlines()[:3] == [
+        f"Protocol version {stamp.PROTOCOL_VERSION}.",
+        "",
+        "# oodrl results",
+    ]
+
+
+def few_detectors(repo: Path, tmp_path: Path) -> Path:
+    """CartPole's results, the records of three detectors kept: a board in seconds."""
+    from oodrl.io import yamlio
+
+    document = yamlio.load((repo / PROJECT / "reports" / "results.yaml").read_text())
+    kept = {"cusum", "kde_density", "random_scores"}
+    document["records"] = [r for r in document["records"] if r.get("detector") in kept]
+    path = tmp_path / "few" / "results.yaml"
+    path.parent.mkdir()
+    path.write_text(yamlio.dump(document))
+    return path
+
+
+def test_the_leaderboard_ranks_one_version_and_names_the_pending_runs(repo, tmp_path):
+    """A run rebuilt at the target is ranked, the one still at the previous version is not,
+    and every file of the leaderboard says so (the page links the previous version's archive).
+    Two runs: CartPole's real results, and a copy stamped one version older."""
+    from oodrl.io import yamlio
+    from oodrl.report.leaderboard import newest_runs
+    from oodrl.stages.leaderboard import run_leaderboard
+
+    version = stamp.PROTOCOL_VERSION
+    results = few_detectors(repo, tmp_path)
+    older = tmp_path / "older" / "results.yaml"
+    older.parent.mkdir()
+    older.write_text(results.read_text())
+    edit(older, f"protocol_version: {version}\n", f"protocol_version: {version - 1}\n")
+    ranked, pending = newest_runs({("CartPole-v1", "0"): [results], ("CartPole-v1", "1"): older})
+    assert ranked == {("CartPole-v1", "0"): [results]}
+    assert pending == {("CartPole-v1", "1"): version - 1}
+    out = tmp_path / "out"
+    run_leaderboard(ranked, out, n_boot=50, ci=0.95, seed=0, pending=pending)
+    line = (
+        f"Protocol {version}: 1 of 2 runs ranked; pending (results of an older protocol, ranked "
+        f"by none of this page's numbers): CartPole-v1/1 (protocol {version - 1}). The previous "
+        f"version's complete leaderboard: pipeline/suite/archive/protocol-{version - 1}/."
+    )
+    markdown = (out / "leaderboard.md").read_text().splitlines()
+    assert markdown[2].startswith(f"Protocol version {version}; 1 environment;")
+    assert markdown[4] == line
+    keys = {
+        "protocol_version": version,
+        "runs_at_version": 1,
+        "pending": [{"environment": "CartPole-v1", "policy": "1", "protocol_version": version - 1}],
+    }
+    board = json.loads((out / "leaderboard.json").read_text())
+    assert {key: board[key] for key in keys} == keys
+    assert [run["policy"] for run in board["runs"]] == ["0"]  # ranked: the target's run only
+    mapping = yamlio.load((out / "leaderboard.yaml").read_text())
+    assert {key: mapping[key] for key in keys} == keys
+    page = (out / "leaderboard.html").read_text()
+    link = f'<a href="../archive/protocol-{version - 1}/leaderboard.html">'
+    assert f'<p class="stamp" id="protocol-runs">{line[:40]}' in page and link in page
+
+
+def test_the_leaderboard_with_nothing_pending_says_so(repo, tmp_path):
+    from oodrl.stages.leaderboard import run_leaderboard
+
+    results = few_detectors(repo, tmp_path)
+    run_leaderboard({("CartPole-v1", "0"): results}, tmp_path, 50, 0.95, 0, pending={})
+    line = f"Protocol {stamp.PROTOCOL_VERSION}: all 1 run ranked; none pending."
+    assert (tmp_path / "leaderboard.md").read_text().splitlines()[4] == line
+    assert f'id="protocol-runs">{line}</p>' in (tmp_path / "leaderboard.html").read_text()
+
+
+def test_the_readme_table_names_the_version(repo_root):
+    from oodrl.report.readme import leaderboard_headline
+
+    board = json.loads((repo_root / "pipeline/suite/reports/leaderboard.json").read_text())
+    assert f"protocol version {board['protocol_version']};" in leaderboard_headline(board)

@@ -347,9 +347,10 @@ def show(
         ),
     ] = None,
 ) -> None:
-    """Render the tables of a results or sweep file in the terminal; of a run_meta.yaml, each
-    detector's fit time, fitted size and µs per streamed step beside its matched AUROC."""
-    from oodrl.report.show import show as render
+    """Render the tables of a results or sweep file in the terminal, after the protocol version
+    of its numbers; of a run_meta.yaml, each detector's fit time, fitted size and µs per
+    streamed step beside its matched AUROC."""
+    from oodrl.report.show import shown as render
     from oodrl.report.show import stale_warning
 
     typer.echo(render(path, max_us_per_step))

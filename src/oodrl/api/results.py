@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 #: Every results frame's columns, in order.
 COLUMNS = (
     "env", "policy", "fault", "tier", "detector", "metric", "value", "ci_low", "ci_high",
-    "n_streams", "severity", "mode", "verified", "family",
+    "n_streams", "severity", "mode", "verified", "family", "protocol",
 )  # fmt: skip
 #: kind -> the file holding it, relative to a pipeline's (or the suite's) directory.
 PIPELINE_FILES = {
@@ -106,7 +106,8 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
         streams or episodes behind the value), ``severity`` (σ of the fault),
         ``mode`` (``online`` or ``posthoc``), ``verified`` (whether the tier's severity was
         verified, SPEC §19) and ``family`` (observation, action or dynamics), None or NaN
-        where the results hold no such value. The metrics of a record keep their results
+        where the results hold no such value, and ``protocol``, the protocol version of the
+        file the row comes from (SPEC §15, §26). The metrics of a record keep their results
         file's names (``matched_auroc``, ``detection_rate@100``, ...); from the operating
         point also ``delay_median@K``, ``delay_p90@K`` (``n_streams``: the streams detected
         within K; NaN below 5 of them), ``clean_false_alarm_rate`` (on the audit streams)
@@ -118,7 +119,8 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
     oodrl.errors.ConfigError
         An unknown `where` or `kind`: one line naming what is allowed.
     oodrl.errors.StoreError
-        A results file that is missing or is not one.
+        A results file that is missing or is not one; the suite's pipelines' results of two
+        protocol versions (during a change of protocol, SPEC §26), which no frame mixes.
 
     Notes
     -----
@@ -138,6 +140,7 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
     rows, attrs = _load_rows(where, kind)
     columns = RANKING_COLUMNS if attrs["kind"] == "ranking" else COLUMNS
     frame = pd.DataFrame.from_records(list(rows), columns=list(columns))
+    frame["protocol"] = attrs["protocol_version"]  # one version a frame (see _suite_rows)
     frame.attrs.update(attrs)
     return frame
 
@@ -193,17 +196,22 @@ def _suite_rows(directory: Path, kind: str) -> tuple[Iterable[dict], dict]:
     if kind in SUITE_FILES:
         path = directory / SUITE_FILES[kind]
         return _board_rows(read_json(path), kind, path)
+    from oodrl.metrics.stamp import one_protocol_version
     from oodrl.suite.environments import suite_runs
 
     root = project_root(directory) or directory.parent.parent
     rows: list[dict] = []
     files: list[str] = []
+    versions: dict[str, dict[str, Any]] = {}
     for relative in suite_runs().values():
         pipeline = pipeline_at(root / relative)
         found, attrs = _pipeline_rows(pipeline, kind)
         rows.extend(found)
         files.extend(attrs["files"])
-    return rows, {"kind": kind, "files": files}
+        versions[attrs["files"][0]] = {"protocol_version": attrs["protocol_version"]}
+    # During a change of protocol the runs hold two versions: no frame mixes them.
+    version = one_protocol_version(versions)
+    return rows, {"kind": kind, "protocol_version": version, "files": files}
 
 
 def _document_rows(
@@ -215,7 +223,7 @@ def _document_rows(
     policy = pipeline.policy if pipeline else None
     attrs = {
         "kind": kind,
-        "protocol_version": document.get("protocol_version"),
+        "protocol_version": _version(document, path),
         "params_hash": document.get("params_hash"),
         "files": [str(path)],
     }
@@ -235,13 +243,24 @@ def _board_rows(document: Any, kind: str, path: Path) -> tuple[Iterable[dict], d
         raise StoreError(f"{path}: not the suite's leaderboard.json (no 'cells' list).")
     attrs = {
         "kind": kind,
-        "protocol_version": document.get("protocol_version"),
+        "protocol_version": _version(document, path),
         "params_hash": document.get("params_hash"),
         "alpha": document.get("alpha"),
         "files": [str(path)],
     }
     rows = ranking_rows(document) if kind == "ranking" else leaderboard_rows(document)
     return list(rows), attrs
+
+
+def _version(document: Mapping[str, Any], path: Path) -> int:
+    """A results document's protocol version (an unstamped one is version 1), or a one-line
+    StoreError."""
+    from oodrl.metrics.stamp import protocol_version
+
+    try:
+        return protocol_version(document)
+    except ValueError as error:
+        raise StoreError(f"{path}: {error}.") from None
 
 
 # -- reading -------------------------------------------------------------------------------

@@ -15,6 +15,7 @@ every cell and its evidence: `oodrl.report.leaderboard_page`.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -83,6 +84,67 @@ class Inputs:
     params_hashes: dict[tuple[str, str], tuple[str | None, ...]] = field(default_factory=dict)
     #: Cells whose tier's verification missed its level (SPEC §19): left out of every aggregate.
     unverified: tuple[Cell, ...] = ()
+
+
+@dataclass(frozen=True)
+class Versions:
+    """Which runs a leaderboard ranks during a change of protocol (SPEC §26): those at
+    `version`, `ranked` of them; `pending` runs (run -> version) hold an older protocol's
+    results, left out of every aggregate until their pipeline is rebuilt."""
+
+    version: int
+    ranked: int
+    pending: dict[tuple[str, str], int] = field(default_factory=dict)
+
+    def line(self) -> str:
+        """ "Protocol 4: 7 of 21 runs ranked; pending: …" (and where the previous one is)."""
+        total = self.ranked + len(self.pending)
+        if not self.pending:
+            return f"Protocol {self.version}: all {_count(total, 'run')} ranked; none pending."
+        runs = ", ".join(f"{e}/{p} (protocol {v})" for (e, p), v in sorted(self.pending.items()))
+        older = sorted(set(self.pending.values()))
+        archives = ", ".join(f"{ARCHIVE}/protocol-{v}/" for v in older)
+        return (
+            f"Protocol {self.version}: {self.ranked} of {_count(total, 'run')} ranked; pending "
+            f"(results of an older protocol, ranked by none of this page's numbers): {runs}. "
+            f"The previous version's complete leaderboard: {archives}."
+        )
+
+    def mapping(self) -> dict[str, Any]:
+        """The keys leaderboard.yaml and leaderboard.json carry."""
+        return {
+            "runs_at_version": self.ranked,
+            "pending": [
+                {"environment": e, "policy": p, "protocol_version": v}
+                for (e, p), v in sorted(self.pending.items())
+            ],
+        }
+
+
+#: Where a maintainer keeps the previous protocol's complete leaderboard while a change of
+#: protocol is rebuilt (docs/how-to/change-protocol.md): ARCHIVE/protocol-<version>/.
+ARCHIVE = "pipeline/suite/archive"
+#: A results file's stamp line (top-level; `oodrl.metrics.stamp.protocol_stamp`).
+_STAMP_LINE = re.compile(r"^protocol_version:[ \t]*(\d+)[ \t]*$", re.MULTILINE)
+
+
+def _file_version(path: Path) -> int:
+    """A results file's protocol version from its stamp line (its YAML whole is seconds)."""
+    found = _STAMP_LINE.search(path.read_text()) if path.is_file() else None
+    return int(found.group(1)) if found else UNSTAMPED_VERSION
+
+
+def newest_runs(
+    results: Mapping[tuple[str, str] | str, Path | Sequence[Path]],
+) -> tuple[dict[tuple[str, str] | str, Path | Sequence[Path]], dict[tuple[str, str], int]]:
+    """The runs whose results are at the newest protocol version among them, and the others
+    (run -> its oldest file's version): what the suite ranks while a change of protocol is
+    being rebuilt a project at a time (SPEC §26)."""
+    versions = {key: min(_file_version(p) for p in _paths(paths)) for key, paths in results.items()}
+    newest = max(versions.values(), default=UNSTAMPED_VERSION)
+    ranked = {key: paths for key, paths in results.items() if versions[key] == newest}
+    pending = {_run_key(key): v for key, v in versions.items() if v != newest}
+    return ranked, pending
 
 
 def _run_key(key: tuple[str, str] | str) -> tuple[str, str]:
@@ -485,6 +547,7 @@ def markdown(
     minimum_detectable_impact: MinimumDetectableImpact | None = None,
     uncertified: Sequence[str] = (),
     unverified: Sequence[Cell] = (),
+    versions: Versions | None = None,
 ) -> str:
     """leaderboard.md: the lead (metric, tier) first, then every other, the harmless-shift
     view, then flags and MDI; uncertified detectors marked, with a note, when there are some;
@@ -504,6 +567,7 @@ def markdown(
         f"({', '.join(policies)}); tiers {', '.join(board.tiers)}; metrics "
         f"{', '.join(metric_label(m, alpha) for m in board.metrics)}.",
         "",
+        *([versions.line(), ""] if versions is not None else []),
     ]
     for metric, tier in board.order():
         lines += _section(board, metric, tier, alpha, uncertified)
@@ -560,9 +624,11 @@ def board_mapping(
     alpha: float | None = None,
     minimum_detectable_impact: MinimumDetectableImpact | None = None,
     uncertified: Sequence[str] = (),
+    versions: Versions | None = None,
 ) -> dict[str, Any]:
     """Everything the leaderboard computed, as plain data (sorted keys when dumped); the
-    uncertified detectors only when there are some."""
+    uncertified detectors only when there are some; the runs ranked and pending, given
+    `versions`."""
     boards: dict[str, dict[str, Any]] = {}
     for (metric, tier), overall in board.overall.items():
         stability = board.stability[(metric, tier)]
@@ -614,6 +680,7 @@ def board_mapping(
         },
         "minimum_detectable_impact": mdi,
     }
+    mapping |= versions.mapping() if versions is not None else {}
     return mapping | ({UNCERTIFIED: list(uncertified)} if uncertified else {})
 
 

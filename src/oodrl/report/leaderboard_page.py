@@ -43,19 +43,23 @@ from oodrl.metrics.leaderboard import (
 )
 from oodrl.metrics.stamp import UNSTAMPED_VERSION
 from oodrl.report.leaderboard import (
+    ARCHIVE,
     HARMFUL_TIER,
     MATCHED_AUROC,
     OPERATING_POINT,
     Inputs,
+    Versions,
     harm_metric,
     lower_is_better,
     metric_label,
 )
 
+#: The suite's directory, where the page's reports/ and the archive are.
+SUITE_FOLDER = "pipeline/suite"
 #: The page's HTML, CSS and JavaScript; the suite's leaderboard stage depends on it.
 PAGE_TEMPLATE = Path(__file__).with_name("leaderboard_page.html")
 #: What the template holds in place of the page's data and stamp.
-MARKS = ("@@PROTOCOL_VERSION@@", "@@PARAMS_HASH@@", "@@DATA@@")
+MARKS = ("@@PROTOCOL_VERSION@@", "@@PARAMS_HASH@@", "@@DATA@@", "@@PROTOCOL_RUNS@@")
 
 
 def _rounded(value: float) -> float:
@@ -136,6 +140,7 @@ def page_data(
     ci: float,
     seed: int,
     us_per_step: Mapping[str, float] | None = None,
+    versions: Versions | None = None,
 ) -> dict:
     """leaderboard.json's content (see the module doc). `us_per_step`: each detector's median µs
     per streamed step, when the caller measured it; a pipeline's timings are the machine's, never
@@ -149,7 +154,7 @@ def page_data(
     families = {c["family"] for c in cells}
     harm = harm_metric(board)
     by_metric = {m: {t: a for (n, t), a in board.overall.items() if n == m} for m in board.metrics}
-    data = {
+    data = (versions.mapping() if versions is not None else {}) | {
         "protocol_version": inputs.protocol_version,
         "params_hash": suite_params_hash(inputs.params_hashes, settings),
         "leaderboard_params": settings,
@@ -248,8 +253,20 @@ def page_html(data: Mapping[str, Any]) -> str:
     # "<" escaped inside JSON strings, so no "</script>" in the data can end its block.
     embedded = page_json(data).replace("<", "\\u003c")
     page = PAGE_TEMPLATE.read_text(encoding="utf-8")
-    for mark, text in zip(
-        MARKS, (html.escape(stamp), html.escape(data["params_hash"]), embedded), strict=True
-    ):
+    texts = (html.escape(stamp), html.escape(data["params_hash"]), embedded, _runs_line(data))
+    for mark, text in zip(MARKS, texts, strict=True):
         page = page.replace(mark, text)
     return page
+
+
+def _runs_line(data: Mapping[str, Any]) -> str:
+    """The runs the page ranks and those pending at an older protocol (SPEC §26), escaped."""
+    if "runs_at_version" not in data:
+        return ""
+    pending = {(r["environment"], r["policy"]): r["protocol_version"] for r in data["pending"]}
+    line = html.escape(Versions(data["protocol_version"], data["runs_at_version"], pending).line())
+    for version in sorted(set(pending.values())):  # the page is pipeline/suite/reports/'s
+        folder = f"{ARCHIVE}/protocol-{version}/"
+        link = f"../{folder.removeprefix(f'{SUITE_FOLDER}/')}leaderboard.html"
+        line = line.replace(folder, f'<a href="{link}">{folder}</a>')
+    return line

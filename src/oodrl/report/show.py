@@ -62,6 +62,17 @@ def show(path: str | Path, max_us_per_step: float | None = None) -> str:
     """The markdown tables of a results or sweep file, for printing in a terminal; of a
     run_meta.yaml, its detectors' cost beside their accuracy in the results.yaml beside it
     (if there is one), only those at most `max_us_per_step` (median) when given."""
+    return _shown(path, max_us_per_step)[1]
+
+
+def shown(path: str | Path, max_us_per_step: float | None = None) -> str:
+    """What `oodrl show` prints: the protocol version of the numbers (SPEC §26; the results
+    beside a run_meta.yaml), then `show`'s tables."""
+    version, text = _shown(path, max_us_per_step)
+    return f"{version}\n\n{text}" if version else text
+
+
+def _shown(path: str | Path, max_us_per_step: float | None) -> tuple[str | None, str]:
     kind, data = load_report(path)
     if kind != "meta" and max_us_per_step is not None:
         raise ConfigError(
@@ -69,12 +80,26 @@ def show(path: str | Path, max_us_per_step: float | None = None) -> str:
             "file. Pass reports/run_meta.yaml."
         )
     if kind == "results":
-        return render_tables(data)
+        return version_line(data), render_tables(data)
     if kind == "sweep":
-        return sweep_tables(data)
+        return version_line(data), sweep_tables(data)
     results_path = Path(path).with_name("results.yaml")
     results = load_report(results_path)[1] if results_path.is_file() else None
-    return cost_table(data["cost"], results, max_us_per_step)
+    table = cost_table(data["cost"], results, max_us_per_step)
+    return (version_line(results) if results is not None else None), table
+
+
+def version_line(data: Mapping[str, Any]) -> str:
+    """Which protocol the numbers follow (SPEC §15, §26): a change of protocol leaves some
+    pipelines' results at the previous version for a while."""
+    from oodrl.metrics.stamp import protocol_version
+
+    try:
+        version = protocol_version(data)
+    except ValueError as error:
+        raise ConfigError(f"{error}.") from None
+    unstamped = " (unstamped results)" if "protocol_version" not in data else ""
+    return f"Protocol version {version}{unstamped}."
 
 
 #: What `dvc status` says of a dependency or output absent from the workspace, as in a clone

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -33,15 +34,27 @@ def results_files(root: Path) -> dict[tuple[str, str], list[Path]]:
 
 
 def run(params: Params, root: Path, out_dir: Path) -> None:
+    """The suite's leaderboard: during a change of protocol (SPEC §26) it ranks the runs at the
+    newest version among them (the target, once one is rebuilt) and lists the others as
+    pending, never ranking two versions together."""
+    from oodrl.report.leaderboard import newest_runs
+
     m = params.metrics
-    run_leaderboard(results_files(root), out_dir, n_boot=m.n_boot, ci=m.ci, seed=params.seed)
+    ranked, pending = newest_runs(results_files(root))
+    run_leaderboard(ranked, out_dir, n_boot=m.n_boot, ci=m.ci, seed=params.seed, pending=pending)
 
 
 def run_leaderboard(
-    results: ResultsPaths, out_dir: Path, n_boot: int, ci: float, seed: int
+    results: ResultsPaths,
+    out_dir: Path,
+    n_boot: int,
+    ci: float,
+    seed: int,
+    pending: Mapping[tuple[str, str], int] | None = None,
 ) -> Board:
     """Write leaderboard.md, leaderboard.yaml, metrics.json, leaderboard.png and the page's
-    leaderboard.json and leaderboard.html into out_dir."""
+    leaderboard.json and leaderboard.html into out_dir; `pending`, runs left out for results of
+    an older protocol (run -> its version), are named in each."""
     import json
 
     from oodrl.io import yamlio
@@ -52,11 +65,13 @@ def run_leaderboard(
 
     inputs = report.read_inputs(results)
     board = build_board(inputs.cells, n_boot=n_boot, ci=ci, seed=seed)
+    versions = report.Versions(inputs.protocol_version, len(results), dict(pending or {}))
     extras = {
         "protocol_version": inputs.protocol_version,
         "alpha": inputs.alpha,
         "minimum_detectable_impact": inputs.minimum_detectable_impact,
         "uncertified": inputs.uncertified,
+        "versions": versions,
     }
     out_dir = Path(out_dir)
     markdown = report.markdown(board, **extras, unverified=inputs.unverified)
@@ -66,7 +81,7 @@ def run_leaderboard(
     text = json.dumps(report.metrics_json(board), indent=2, sort_keys=True) + "\n"
     atomic_write_text(out_dir / "metrics.json", text)
     report.plot(board, out_dir / "leaderboard.png", inputs.alpha)
-    data = page_data(inputs, board, n_boot=n_boot, ci=ci, seed=seed)
+    data = page_data(inputs, board, n_boot=n_boot, ci=ci, seed=seed, versions=versions)
     atomic_write_text(out_dir / "leaderboard.json", page_json(data))
     atomic_write_text(out_dir / "leaderboard.html", page_html(data))
     return board
