@@ -102,7 +102,8 @@ def _records(env: dict[str, str], *argv: str) -> list[bool]:
     return [r["warm"] for r in records if r["ran"] and all(a in r["argv"] for a in argv)]
 
 
-def test_a_command_under_dvc_runs_in_the_warm_server(repo, warm_env):
+def test_a_command_under_dvc_runs_in_the_warm_server(tmp_path, warm_env):
+    repo = tmp_path  # --version reads nothing of a pipeline: no copy of it
     first = run(repo, "oodrl", "--version", env=warm_env).stdout
     _warmed(repo, warm_env)
     second = run(repo, "oodrl", "--version", env=warm_env)
@@ -191,7 +192,8 @@ def test_a_killed_client_takes_its_warm_stage_with_it(repo, warm_env):
     assert not store.exists()
 
 
-def test_a_server_whose_modules_changed_serves_no_more(repo, warm_env):
+def test_a_server_whose_modules_changed_serves_no_more(tmp_path, warm_env):
+    repo = tmp_path  # --version reads nothing of a pipeline: no copy of it
     server = _warmed(repo, warm_env)
     sitecustomize = Path(warm_env["OODRL_WARM_TRACE"]) / "sitecustomize.py"
     sitecustomize.write_text(sitecustomize.read_text() + "\n# changed\n")
