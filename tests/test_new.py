@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import re
 import shlex
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -63,15 +64,33 @@ def train_agent(path: Path, env_id: str) -> None:
     venv.save(path.with_name("vecnormalize.pkl"))
 
 
+#: The environment of the how-to's agent and of the RL Zoo folder's.
+AGENT_ENV = "MountainCarContinuous-v0"
+
+
 @pytest.fixture(scope="module")
-def followed(tmp_path_factory, repo_root) -> tuple[Path, dict[str, str]]:
+def agent(tmp_path_factory) -> Path:
+    """One PPO agent on AGENT_ENV, trained once for the module (the how-to's agent and the RL
+    Zoo run's): agent.zip and vecnormalize.pkl beside it, which tests copy, never change."""
+    path = tmp_path_factory.mktemp("agent") / "agent.zip"
+    train_agent(path, AGENT_ENV)
+    return path
+
+
+def place_agent(agent: Path, model: Path, normalization: Path) -> None:
+    shutil.copy(agent, model)
+    shutil.copy(agent.with_name("vecnormalize.pkl"), normalization)
+
+
+@pytest.fixture(scope="module")
+def followed(tmp_path_factory, repo_root, agent) -> tuple[Path, dict[str, str]]:
     """The how-to's three commands in a fresh project; the output of each."""
     repo = copy_project(repo_root, tmp_path_factory.mktemp("new") / "repo", tiny_params(repo_root))
     commands = readme_commands()
     new = shlex.split(commands[0])
-    policy = new[new.index("--policy") + 1]
-    env_id = new[new.index("--env") + 1]
-    train_agent(repo / policy, env_id)
+    policy = repo / new[new.index("--policy") + 1]
+    assert new[new.index("--env") + 1] == AGENT_ENV
+    place_agent(agent, policy, policy.with_name("vecnormalize.pkl"))
     outputs = {}
     for command in commands:
         words = shlex.split(command)
@@ -204,15 +223,14 @@ def test_train_on_a_mujoco_environment_supports_every_fault(root):
 
 
 @pytest.mark.slow
-def test_an_rl_zoo_folder_becomes_a_pipeline_of_its_own_environment(root, tmp_path):
+def test_an_rl_zoo_folder_becomes_a_pipeline_of_its_own_environment(root, tmp_path, agent):
     """logs/ppo/<env>_1/ as rl-zoo3 writes it; the folder names the environment it ran on."""
     from collections import OrderedDict
 
-    env_id = "MountainCarContinuous-v0"
+    env_id = AGENT_ENV
     run_dir = tmp_path / "logs" / "ppo" / f"{env_id}_1"
     (run_dir / env_id).mkdir(parents=True)
-    train_agent(run_dir / f"{env_id}.zip", env_id)
-    (run_dir / "vecnormalize.pkl").rename(run_dir / env_id / "vecnormalize.pkl")
+    place_agent(agent, run_dir / f"{env_id}.zip", run_dir / env_id / "vecnormalize.pkl")
     (run_dir / env_id / "config.yml").write_text(yaml.dump(OrderedDict(normalize=True)))
     wrong = CliRunner().invoke(
         app, ["new", "x", "--env", "Pendulum-v1", "--policy", str(run_dir), "--root", str(root)]
