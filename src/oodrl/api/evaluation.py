@@ -141,6 +141,7 @@ def evaluate(
     import pandas as pd
 
     from oodrl.api.results import COLUMNS, tier_rows
+    from oodrl.metrics.stamp import PROTOCOL_VERSION
 
     size = os.environ.get(SIZE_VARIABLE) or size
     if size not in SIZES:
@@ -164,6 +165,7 @@ def evaluate(
     rows = list(tier_rows(records, pipeline.env, pipeline.policy))
     rows += _cost_rows(pipeline, label, cost)
     frame = pd.DataFrame.from_records(rows, columns=list(COLUMNS))
+    frame["protocol"] = PROTOCOL_VERSION  # this code's: what these records follow
     frame.attrs.update({
         "kind": "tiers",
         "size": size,
