@@ -297,3 +297,13 @@ def test_the_readme_table_names_the_version(repo_root):
 
     board = json.loads((repo_root / "pipeline/suite/reports/leaderboard.json").read_text())
     assert f"protocol version {board['protocol_version']};" in leaderboard_headline(board)
+
+
+def test_the_readme_table_names_the_pending_runs(repo_root):
+    from oodrl.report.readme import leaderboard_headline
+
+    board = json.loads((repo_root / "pipeline/suite/reports/leaderboard.json").read_text())
+    assert "Pending" not in leaderboard_headline(board)  # the committed board: nothing pending
+    board["pending"] = [{"environment": "Hopper-v5", "policy": "1", "protocol_version": 3}]
+    caption = leaderboard_headline(board).splitlines()[-1]
+    assert "Pending, ranked by none of these numbers: Hopper-v5/1 (protocol 3)." in caption

@@ -90,6 +90,12 @@ def leaderboard_headline(board: dict[str, Any], top: int = TOP) -> str:
     if floor in scores:
         caption += f"; the floor, `{floor}`: {_interval(scores[floor])}"
     caption += "."
+    if board.get("pending"):  # a change of protocol under way (SPEC §26): say what is left out
+        runs = ", ".join(
+            f"{r['environment']}/{r['policy']} (protocol {r['protocol_version']})"
+            for r in board["pending"]
+        )
+        caption += f" Pending, ranked by none of these numbers: {runs}."
     if any(d in board.get("uncertified_detectors", []) for d in shown):
         caption += " † runs a library's own kernels (not certified machine-independent)."
     return "\n".join([*lines, "", caption])
