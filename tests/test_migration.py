@@ -150,8 +150,9 @@ def _kill_after_first_commit(repo: Path, since: str) -> list[str]:
     """`oodrl suite run --commit --workers 1`, SIGKILLed with every process it started as soon
     as it has committed a pipeline (a machine lost mid-build): the commits it made."""
     command = [sys.executable, "-m", "oodrl", "suite", "run", "--commit", "--workers", "1"]
-    process = subprocess.Popen(command, cwd=repo, env=environment(), stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)  # fmt: skip
+    quiet = subprocess.DEVNULL
+    process = subprocess.Popen(command, cwd=repo, env=environment(code_env(repo)), stdout=quiet,
+                               stderr=quiet)  # fmt: skip
     try:
         while not subjects(repo, since):
             assert process.poll() is None, "the run ended before its first commit"
@@ -210,9 +211,6 @@ def test_a_run_killed_after_its_first_commit_resumes_in_a_fresh_clone(lab, tmp_p
         run(resumed, "git", "rev-parse", tree).stdout
         == run(one_go, "git", "rev-parse", tree).stdout
     )
-    # Every pipeline current now: the next run decides so from git, and runs nothing.
-    last = suite_run(resumed, "--commit")
-    assert last.returncode == 0 and "nothing to run" in last.stdout.splitlines()[-1], last.stdout
 
 
 @pytest.fixture
@@ -256,7 +254,7 @@ def test_commit_refuses_a_pipeline_stale_for_another_reason(pending):
     params.write_text(params.read_text() + "metrics:\n  n_boot: 21\n")
     run(pending, "git", "commit", "-q", "-am", "a CartPole knob, not relocked")
     error = refused(pending, "--commit", code=2)
-    assert error.startswith("error: pipeline/cartpole: stale (") and "not pending" in error
+    assert "pipeline/cartpole" in error.split(": stale, not pending")[0], error
 
 
 def test_a_second_run_is_refused_by_the_checkout_lock(pending):

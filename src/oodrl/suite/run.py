@@ -576,10 +576,11 @@ def _build_suite(
     todo = [pipeline for pipeline in pipelines if states[pipeline].status != "current"]
     stale = [pipeline for pipeline in todo if states[pipeline].status == "stale"]
     if plan.commit and stale:  # what --commit would commit is a migration's step, nothing else
-        first, more = states[stale[0]], f" ({len(stale) - 1} more stale)" if stale[1:] else ""
-        raise ConfigError(f"{first.project}: stale ({_why_stale(first)}), not pending a protocol "
-                          f"change; --commit builds and commits pending pipelines only: relock "
-                          f"it as its change needs, or run without --commit{more}.")  # fmt: skip
+        first, more = states[stale[0]], " …" if stale[3:] else ""
+        raise ConfigError(f"{', '.join(stale[:3])}{more}: stale, not pending a protocol change "
+                          f"({first.project}: {_why_stale(first)}); --commit builds and commits "
+                          f"pending pipelines only: relock as the change needs, or run without "
+                          f"--commit.")  # fmt: skip
     building = [pipeline for pipeline in todo if pipeline in plan.chosen]
     version = target_version(root)
     if not todo and _up_to_date(root / SUITE_DIR):
