@@ -5,7 +5,10 @@ to batch scoring bit for bit, and which detectors are certified machine-independ
 
 from __future__ import annotations
 
+import inspect
 import os
+import pickle
+import re
 import subprocess
 import sys
 import textwrap
@@ -22,11 +25,13 @@ from oodrl.detectors.library import LibraryDetector
 from oodrl.detectors.time_index import TimeIndex
 from oodrl.testing import (
     check_detector,
+    check_global_random_state,
     check_not_fitted,
     check_parameters,
     check_pickle_roundtrip,
     check_reproducible,
     check_score_is_pure,
+    check_scores_use_the_data,
     check_state_dim,
     check_streaming,
     check_threshold,
@@ -77,6 +82,35 @@ def factory(path: str, params: dict):
     return lambda: cls.from_params(params)
 
 
+def check_contract_but_the_torch_free_import(make, fit, calibration, evaluation) -> None:
+    """`check_detector`'s checks, in its order, all but `check_torch_free_import`: a process
+    start that imports oodrl and the library, ~6 s of CPU a detector here, made once for every
+    detector of this file by test_building_library_detectors_does_not_import_torch."""
+    fresh = make()
+    check_parameters(fresh)
+    check_not_fitted(fresh, evaluation[0])
+    fitted = make()
+    assert fitted.fit(fit) is fitted, "fit must return the detector itself"
+    check_scores_use_the_data(make, fit, evaluation)
+    check_reproducible(make, fit, evaluation)
+    check_global_random_state(make, fit, evaluation)
+    check_score_is_pure(fitted, evaluation)
+    check_state_dim(fitted, evaluation[0])
+    check_threshold(fitted, calibration)
+    check_streaming(fitted, evaluation)
+    check_pickle_roundtrip(fitted, evaluation)
+
+
+def test_the_contract_here_is_check_detectors_but_the_torch_free_import():
+    """If check_detector gains a check, this file's contract runs it too."""
+    called = set(re.findall(r"\b(check_\w+)\(", inspect.getsource(check_detector)))
+    here = set(re.findall(r"\b(check_\w+)\(",
+                          inspect.getsource(check_contract_but_the_torch_free_import)))  # fmt: skip
+    assert called - {"check_detector"} == here - {"check_contract_but_the_torch_free_import"} | {
+        "check_torch_free_import"
+    }
+
+
 @pytest.mark.parametrize("case", LIBRARY_CASES, ids=list(LIBRARY_CASES))
 def test_library_detector_passes_the_contract(case):
     path, params, data = LIBRARY_CASES[case]
@@ -84,7 +118,34 @@ def test_library_detector_passes_the_contract(case):
     detector = make()
     assert isinstance(detector, LibraryDetector)
     assert not detector.machine_independent
-    check_detector(make, *splits(data))
+    check_contract_but_the_torch_free_import(make, *splits(data))
+
+
+#: oodrl.testing.check_torch_free_import for many detectors in one fresh interpreter: each
+#: unpickled, built and validated in turn; the first that imports torch is named. A detector
+#: that passes imports no torch, so those after it are judged as in a process of their own.
+TORCH_FREE = """
+import pickle, sys
+for name, pickled in pickle.load(sys.stdin.buffer):
+    detector = pickle.loads(pickled)
+    type(detector).from_params(detector.get_params()).validate_params()
+    if "torch" in sys.modules:
+        sys.exit(f"building {name} imported torch")
+"""
+
+
+def test_building_library_detectors_does_not_import_torch(project):
+    """check_detector's torch-free import check of every library case and of the plugin, at
+    one process start instead of nine (check_torch_free_import itself: test_contract.py)."""
+    made = [factory(path, params)() for path, params, _ in LIBRARY_CASES.values()]
+    made.append(factory("my_outliers:CentroidDistance", {"power": 1.5, "features": "transition"})())
+    pickled = pickle.dumps([(d.name, pickle.dumps(d)) for d in made])
+    done = subprocess.run([sys.executable, "-c", TORCH_FREE], input=pickled, capture_output=True)
+    assert done.returncode == 0, done.stderr.decode()
+    # The check can fail: a build that imports torch is named.
+    failing = TORCH_FREE.replace("validate_params()", "validate_params(); import torch")
+    done = subprocess.run([sys.executable, "-c", failing], input=pickled, capture_output=True)
+    assert done.stderr.decode().strip() == f"building {made[0].name} imported torch"
 
 
 #: A user's own outlier class beside params.yaml: fit and decision_function, nothing else.
@@ -122,7 +183,7 @@ def test_plugin_with_only_fit_and_decision_function(project):
     make = factory("my_outliers:CentroidDistance", {"power": 1.5, "features": "transition"})
     detector = make()
     assert detector.name == "my_outliers:CentroidDistance" and not detector.machine_independent
-    check_detector(make, *splits(DISCRETE))
+    check_contract_but_the_torch_free_import(make, *splits(DISCRETE))  # and one process below
     fitted = make().fit(DISCRETE[:6])
     assert fitted.api_ == "decision_function" and fitted.batched_
     # Larger = more anomalous, as the plugin's decision_function says: a far state scores more.
