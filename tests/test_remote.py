@@ -9,7 +9,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
-from suite_repo import checkout, code_env, head_commit, locks, two_environment_suite
+from suite_repo import (
+    checkout,
+    code_env,
+    copy_built,
+    head_commit,
+    locks,
+    run_folder,
+    serial_built_suite,
+    two_environment_suite,
+)
 from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
@@ -26,14 +35,14 @@ BUCKET = "oodrl-lab"
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory, repo_root) -> tuple[Path, list[str]]:
-    """The CartPole project built and its locks committed: HEAD has current locks, HEAD~1
-    the stale ones of a commit nobody has built yet."""
-    repo = tmp_path_factory.mktemp("built") / "repo"
-    two_environment_suite(repo_root, head_commit(repo_root), repo)
-    ran = repro(repo / PROJECT, env=code_env(repo))
+    """The suite built (a copy of the serial build a test run makes once,
+    suite_repo.serial_built_suite) and its locks committed: HEAD has current locks, HEAD~1 the
+    stale ones of a commit nobody has built yet; and the CartPole stages that ran."""
+    made, ran = serial_built_suite(repo_root, head_commit(repo_root), run_folder(tmp_path_factory))
+    repo = copy_built(made, tmp_path_factory.mktemp("built") / "repo")
     run(repo, "git", "add", "-A")
-    run(repo, "git", "commit", "-q", "-m", "CartPole built")
-    return repo, ran
+    run(repo, "git", "commit", "-q", "-m", "the suite built")
+    return repo, [stage for stage in ran if stage.startswith(f"{PROJECT}:")]
 
 
 @pytest.fixture
