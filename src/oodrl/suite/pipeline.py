@@ -172,9 +172,8 @@ class Project:
     def command_source(self, verb: str) -> str:
         """The cli.py code `oodrl <verb>` runs, in file order: its stamp hashes this instead of
         the whole file, so editing another command re-runs none of this verb's stages."""
-        source = self.cli_file().read_text()
-        nodes = sorted(_command_nodes(self.cli_tree(), verb), key=lambda node: node.lineno)
-        return "\n".join(ast.get_source_segment(source, node, padded=True) or "" for node in nodes)
+        cli = self.cli_file()
+        return _command_source(cli, cli.stat().st_mtime_ns, verb)
 
     def cli_file(self) -> Path:
         cli = self.module_file(CLI_MODULE)
@@ -228,6 +227,15 @@ def stage_source(path: Path) -> bytes:
     dropped = {i for node in hooks for i in range(node.lineno - 1, node.end_lineno or 0)}
     kept = "".join(line for i, line in enumerate(lines) if i not in dropped)
     return (kept.rstrip("\n") + "\n").encode()
+
+
+@cache
+def _command_source(cli: Path, mtime_ns: int, verb: str) -> str:
+    """`Project.command_source`, once a cli.py version and verb: every stage kind of a verb
+    asks it, and `ast.get_source_segment` splits the whole file again for each node."""
+    source = cli.read_text()
+    nodes = sorted(_command_nodes(_parse(cli), verb), key=lambda node: node.lineno)
+    return "\n".join(ast.get_source_segment(source, node, padded=True) or "" for node in nodes)
 
 
 @cache
