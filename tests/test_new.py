@@ -23,6 +23,7 @@ from typer.testing import CliRunner
 from oodrl.cli import app
 from oodrl.config import read_params_data
 from oodrl.suite.new import new_pipeline
+from oodrl.suite.pipeline import check_files
 from oodrl.testing.pipeline import TINY_TIERS, copy_project, run
 
 SECTION = (DOCS / "how-to" / "your-agent.md", "Benchmark your own agent")
@@ -115,7 +116,8 @@ def test_the_readme_block_benchmarks_an_agent_outside_the_suite(followed):
     # The root pipeline and the suite were left as they were; every generated file is current.
     untouched = run(repo, "git", "status", "--porcelain", "--", "dvc.yaml", "pipeline/suite")
     assert untouched.stdout == ""
-    assert "every dvc.yaml is current" in run(repo, "oodrl", "pipeline", "check").stdout
+    # Only the generated files: the copy's tiny params leave its locks stale by design.
+    check_files(repo)
 
 
 @pytest.mark.slow

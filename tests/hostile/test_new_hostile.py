@@ -23,7 +23,7 @@ from typer.testing import CliRunner
 
 from oodrl.cli import app
 from oodrl.suite.new import new_pipeline
-from oodrl.suite.pipeline import check_pipeline
+from oodrl.suite.pipeline import check_files, check_pipeline
 from oodrl.testing.pipeline import environment, run
 
 #: Two CartPole controllers given as `module:function` policies (no training, fast to run).
@@ -131,7 +131,8 @@ def test_an_interrupted_new_leaves_the_pipeline_complete_or_absent(repo: Path):
     done = subprocess.run(oodrl(*NEW, *TINY), cwd=repo, env=environment(), capture_output=True,
                           text=True, check=False)  # fmt: skip
     assert done.returncode == 0, done.stderr
-    assert "every dvc.yaml is current" in run(repo, "oodrl", "pipeline", "check").stdout
+    # Only the generated files: the copy's tiny params leave its locks stale by design.
+    check_files(repo)
     assert_complete_or_absent(repo, "no signal")
 
 

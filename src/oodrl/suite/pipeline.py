@@ -962,6 +962,15 @@ def check(root: Path) -> list[ProjectState]:
     """Raise a one-line ConfigError unless every pipeline's dvc.yaml is up to date, and one
     naming each stale project unless every project's committed locks are current or pending
     in a change of protocol (`oodrl.suite.migration`, SPEC §26); each project's state."""
+    check_files(root)
+    from oodrl.suite import migration
+
+    return migration.check(root)
+
+
+def check_files(root: Path) -> None:
+    """Raise a one-line ConfigError unless every generated DVC file of the suite is what
+    `oodrl pipeline write` writes (the locks are `check`'s)."""
     for directory in pipeline_dirs(root):
         check_pipeline(directory / "dvc.yaml")
     for path, expected in subrepo_files(root / SUITE_DIR, root).items():
@@ -976,6 +985,3 @@ def check(root: Path) -> list[ProjectState]:
             f"{SUITE_DIR / 'dvc.yaml'} is not what `oodrl pipeline write` writes "
             f"({_first_difference(rendered_suite(root), text)}); run `oodrl pipeline write`."
         )
-    from oodrl.suite import migration
-
-    return migration.check(root)
