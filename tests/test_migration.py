@@ -6,8 +6,9 @@ time; killed (SIGKILL) after its first commit, it resumes in a fresh clone with 
 cache, builds only what is left, and ends where a build in one go ends, byte for byte. Each
 refusal is one line before anything runs, with nothing committed.
 
-Real git, DVC, processes and HTTP servers on loopback. The suite is built three times in all
-(at this protocol once, then at the next in one go, and in two steps split by the kill); every
+Real git, DVC, processes and HTTP servers on loopback. The suite is built once, at this
+protocol; after the bump, the stages whose code stamps it changed (a few a pipeline) run in one
+go, and in two steps split by the kill, the other outputs pulled from the lab's remote. Every
 other test here runs in a clone and stops before any stage."""
 
 from __future__ import annotations
