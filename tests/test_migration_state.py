@@ -114,6 +114,18 @@ def test_stages_whose_stamps_are_not_check_params_ones_are_stale(repo):
     assert "the stages' code stamps are not the ones check_params last wrote" in found.reasons[0]
 
 
+def test_a_lock_entry_of_a_stage_no_longer_in_dvc_yaml_is_ignored_as_dvc_ignores_it(repo):
+    """DVC rewrites only the lock entries of the stages it runs: one left by a stage since
+    removed (another stamp among them) does not make a built project stale."""
+    lock = repo / PROJECT / "detectors" / "kde_density" / "dvc.lock"
+    document = yaml.safe_load(lock.read_text())
+    gone = json.loads(json.dumps(document["stages"]["fit"]))
+    gone["deps"][0] = {**gone["deps"][0], "path": "data/code/fit-gone.txt", "md5": "0" * 32}
+    document["stages"]["fit_gone"] = gone
+    lock.write_text(yaml.safe_dump(document, sort_keys=False))
+    assert state(repo).status == "current"
+
+
 def test_a_bump_makes_the_project_pending_whatever_its_locks(repo, monkeypatch):
     monkeypatch.setattr(stamp, "PROTOCOL_VERSION", stamp.PROTOCOL_VERSION + 1)
     edit(repo / PROJECT / "params.yaml", "  T: 500 ", "  T: 499 ")  # pending: stale in any way

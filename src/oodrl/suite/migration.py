@@ -143,7 +143,11 @@ class _Stage:
 def _lock_reasons(root: Path, directory: Path, stamps: bool) -> list[str]:
     from oodrl.suite.pipeline import CHECK_STAGE, CODE_STAMPS
 
-    stages, locked = _stages(directory), _locks(directory)
+    stages = _stages(directory)
+    # A lock keeps the entries of stages its dvc.yaml no longer has (DVC rewrites only the
+    # entries of the stages it runs, and its status ignores the others): so does this check.
+    names = {stage.name for stage in stages}
+    locked = {name: lock for name, lock in _locks(directory).items() if name in names}
     reasons: list[str] = []
     written: dict[str, str] = {}  # out path -> md5, from the locks
     for stage in stages:
