@@ -24,6 +24,7 @@ import pytest
 #: time, never a result.
 COST_S: dict[str, float] = {
     "tests/test_suite_run.py": 1360,
+    "tests/test_migration.py": 540,  # new: its lab's build and a resumed build, -p no:xdist, loaded
     "tests/test_protocol_every_environment.py": 889,
     "tests/pipeline/test_pipeline.py": 867,
     "tests/detectors/test_library.py": 696,
@@ -65,18 +66,27 @@ COST_S: dict[str, float] = {
 #: What a module without an entry in COST_S counts when it holds a test marked `slow`.
 SLOW_S = 50.0
 #: Modules that use one session fixture are dealt to one worker together, which builds it once:
-#: the tests' tiny pipeline (`built_repo`, tests/tiny_pipeline.py).
+#: the tests' tiny pipeline (`built_repo`, tests/tiny_pipeline.py), the tiny suite's serial build.
 GROUPS: dict[str, str] = {
-    module: "built_repo"
-    for module in (
-        "tests/api/test_evaluate.py",
-        "tests/pipeline/test_deps.py",
-        "tests/pipeline/test_failures.py",
-        "tests/pipeline/test_leaderboard_pipeline.py",
-        "tests/pipeline/test_pipeline.py",
-        "tests/pipeline/test_recovery.py",
-        "tests/pipeline/test_warm.py",
-    )
+    **{
+        module: "built_repo"
+        for module in (
+            "tests/api/test_evaluate.py",
+            "tests/test_fresh_check.py",
+            "tests/pipeline/test_deps.py",
+            "tests/pipeline/test_failures.py",
+            "tests/pipeline/test_leaderboard_pipeline.py",
+            "tests/pipeline/test_pipeline.py",
+            "tests/pipeline/test_recovery.py",
+            "tests/pipeline/test_warm.py",
+        )
+    },
+    # The tiny suite's serial build (tests/suite_repo.py serial_built_suite): a second worker
+    # asking for it while the first builds it would wait, idle, under its file lock.
+    **{
+        module: "serial_built_suite"
+        for module in ("tests/test_suite_run.py", "tests/test_suite_try.py", "tests/test_remote.py")
+    },
 }
 
 
