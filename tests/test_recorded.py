@@ -24,6 +24,7 @@ from oodrl.cli import app
 from oodrl.config import load_params, read_params_data
 from oodrl.errors import ConfigError
 from oodrl.suite.new import new_pipeline
+from oodrl.suite.pipeline import check_files
 from oodrl.testing.pipeline import copy_project, run
 
 SECTION = (DOCS / "how-to" / "your-agent.md", "Recorded data: a Minari dataset")
@@ -314,7 +315,8 @@ def test_the_readme_recipe_benchmarks_recorded_data(minari_root, tmp_path, repo_
         read_trajectories(pipeline / "data" / "eval.zarr").states, expected
     )
     # Every generated file is current; the root pipeline and the suite were left as they were.
-    assert "every dvc.yaml is current" in run(repo, "oodrl", "pipeline", "check").stdout
+    # (The generated files only: the copy's tiny params leave its locks stale by design.)
+    check_files(repo)
     untouched = run(repo, "git", "status", "--porcelain", "--", "dvc.yaml", "pipeline/suite")
     assert untouched.stdout == ""
     assert re.search(r"Hopper-v5, T=40; recorded data " + re.escape(HOPPER), outputs["new"])
