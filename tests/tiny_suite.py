@@ -4,12 +4,19 @@ write` leave them (one-line stages, so building one takes about a second)."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
 from pathlib import Path
 
+from oodrl.metrics.stamp import PROTOCOL_VERSION
+
 DVC_GITIGNORE = "/config.local\n/tmp\n/cache\n"
+#: What a tiny stage appends to the reports/results.yaml it wrote: the top-level stamp line of
+#: this code's protocol (oodrl.metrics.stamp), so that a built project reads as current
+#: (oodrl.suite.migration.project_states), not as pending at the unstamped protocol 1.
+STAMP = f"echo protocol_version: {PROTOCOL_VERSION} >> reports/results.yaml"
 
 
 def git(repo: Path, *args: str) -> str:
@@ -38,8 +45,10 @@ def dvc_project(directory: Path, cache: str | None, stages: str) -> None:
 
 def one_pipeline_suite(repo: Path, command: str) -> Path:
     """The root and pipeline/a, each a stage running `command` that writes
-    reports/results.yaml, and the leaderboard reading a's, committed."""
-    build = f"  build:\n    cmd: {command}\n    outs:\n      - reports/results.yaml\n"
+    reports/results.yaml (then the STAMP line, so that a built project is current), and the
+    leaderboard reading a's, committed."""
+    cmd = json.dumps(f"{command} && {STAMP}")  # a YAML scalar, whatever `command` holds
+    build = f"  build:\n    cmd: {cmd}\n    outs:\n      - reports/results.yaml\n"
     dvc_project(repo, None, build)
     dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", build)
     leaderboard = ("  leaderboard:\n    cmd: cat ../a/reports/results.yaml > leaderboard.txt\n"

@@ -1,6 +1,7 @@
 """`oodrl suite run` against hostile inputs (issue 37): a DVC remote whose directory does not
-exist, a --ray address where something other than Ray answers, checks that need no `dvc status`
-made after it, and a run ended by SIGTERM. Each refusal is one line and changes nothing.
+exist, a --ray address where something other than Ray answers, the checks that need no DVC made
+before where the projects stand is decided, and a run ended by SIGTERM. Each refusal is one line
+and changes nothing.
 
 The repository is the suite's shape at its smallest: the root's DVC project and one pipeline's
 (pipeline/a), each one stage, and the leaderboard's project (pipeline/suite) reading the
@@ -22,6 +23,8 @@ from tiny_suite import dvc, git, one_pipeline_suite
 from typer.testing import CliRunner
 
 from oodrl.cli import app
+from oodrl.metrics.stamp import PROTOCOL_VERSION
+from oodrl.suite import migration
 from oodrl.suite import run as suite_run
 from oodrl.suite.run import SuiteRunError, run_suite
 
@@ -82,11 +85,21 @@ def test_a_root_cache_moved_by_config_is_refused_before_any_task(tmp_path, statu
     error = result.output.splitlines()[-1]
     assert error.startswith("error: pipeline/a uses the DVC cache ") and "elsewhere" in error
     assert "dvc cache dir --local" in error
-    assert status_calls == [] and _files(tmp_path) == before
-    # The same cache given to every project, as the line says: the run goes on.
+    # Unbuilt, both pipelines are pending (decided from git alone, no `dvc status`): the
+    # refusal comes once they are to build, before any task starts.
+    assert result.output.splitlines()[:-1] == [
+        "suite: 3 projects; checking the DVC remote first",
+        "suite: from git, 0 of 2 pipelines current; pending: . (protocol 0), "
+        "pipeline/a (protocol 0)",
+    ]
+    assert status_calls == [("project_states", (".", "pipeline/a"))]
+    assert _files(tmp_path) == before
+    # The same cache given to every project, as the line says: the run goes on and builds both.
     for project in (repo / "pipeline" / "a", repo / "pipeline" / "suite"):
         dvc(project, "cache", "dir", "--local", str(tmp_path / "elsewhere"))
-    assert run_suite(repo, workers=2, echo=lambda line: None).pipelines == ()
+    built = run_suite(repo, workers=2, echo=lambda line: None)
+    assert sorted(run.pipeline for run in built.pipelines) == [".", "pipeline/a"]
+    assert built.head_ran == ("pipeline/suite:leaderboard",)
 
 
 # -- 2. a --ray address where something other than Ray answers ---------------------------------
@@ -127,16 +140,24 @@ def test_a_ray_address_that_is_not_ray_is_refused_in_seconds(http_server, tmp_pa
 # A real Ray head passes the handshake: tests/test_suite_run.py's Ray test (one cluster a run).
 
 
-# -- 3. the checks that need no `dvc status` first, and a line at once -------------------------
+# -- 3. the checks that need no DVC first, and a line at once ----------------------------------
 @pytest.fixture
-def status_calls(monkeypatch) -> list[str]:
-    """The projects `dvc status` is asked about, in order (each found current)."""
-    calls: list[str] = []
+def status_calls(monkeypatch) -> list[tuple]:
+    """Where the projects stand, asked in order: ("project_states", pipelines) for the
+    pipelines decided from git (oodrl.suite.migration, answered as it answers), ("dvc status",
+    project) for a project DVC is asked about (found current)."""
+    calls: list[tuple] = []
+    decide = migration.project_states
+
+    def project_states(root: Path, projects=None, **options):
+        calls.append(("project_states", tuple(projects or ())))
+        return decide(root, projects, **options)
 
     def up_to_date(project: Path) -> bool:
-        calls.append(project.name)
+        calls.append(("dvc status", project.name))
         return True
 
+    monkeypatch.setattr(migration, "project_states", project_states)
     monkeypatch.setattr(suite_run, "_up_to_date", up_to_date)
     return calls
 
@@ -164,19 +185,26 @@ def test_a_progress_line_comes_before_the_status_checks(tmp_path, monkeypatch):
     (tmp_path / "remote").mkdir()
     repo = with_remote(one_pipeline_suite(tmp_path / "repo", QUICK), tmp_path / "remote")
     lines: list[str] = []
+    seen_by_states: list[list[str]] = []
     seen_by_status: list[list[str]] = []
+
+    def project_states(root: Path, projects=None, **options):  # every pipeline current
+        seen_by_states.append(list(lines))
+        return [migration.ProjectState(p, migration.CURRENT, PROTOCOL_VERSION) for p in projects]
 
     def up_to_date(project: Path) -> bool:
         seen_by_status.append(list(lines))
         return True
 
+    monkeypatch.setattr(migration, "project_states", project_states)
     monkeypatch.setattr(suite_run, "_up_to_date", up_to_date)
     run_suite(repo, workers=2, echo=lines.append)
-    assert len(seen_by_status) == 3
-    assert seen_by_status[0] == [
-        "suite: 3 projects; checking the DVC remote first",
-        "suite: checking 3 projects with dvc status (2 at a time)",
-    ]
+    assert seen_by_states == [["suite: 3 projects; checking the DVC remote first"]]
+    # Where the pipelines stand is one line, before the suite's own project is asked of DVC.
+    assert seen_by_status == [
+        ["suite: 3 projects; checking the DVC remote first",
+         "suite: from git, 2 of 2 pipelines current"]
+    ]  # fmt: skip
     assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"
 
 
