@@ -43,11 +43,12 @@ def dvc_project(directory: Path, cache: str | None, stages: str) -> None:
     (directory / "dvc.yaml").write_text(f"stages:\n{stages}")
 
 
-def one_pipeline_suite(repo: Path, command: str) -> Path:
+def one_pipeline_suite(repo: Path, command: str, *, stamped: bool = False) -> Path:
     """The root and pipeline/a, each a stage running `command` that writes
-    reports/results.yaml (then the STAMP line, so that a built project is current), and the
-    leaderboard reading a's, committed."""
-    cmd = json.dumps(f"{command} && {STAMP}")  # a YAML scalar, whatever `command` holds
+    reports/results.yaml, and the leaderboard reading a's, committed. `stamped`: the stages
+    then append the STAMP line, so that a built project is current to `oodrl suite run`;
+    unstamped, its results read as protocol 1, pending, and every run builds it again."""
+    cmd = json.dumps(f"{command} && {STAMP}" if stamped else command)  # a YAML scalar
     build = f"  build:\n    cmd: {cmd}\n    outs:\n      - reports/results.yaml\n"
     dvc_project(repo, None, build)
     dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", build)

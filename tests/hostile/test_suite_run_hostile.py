@@ -77,7 +77,7 @@ def test_a_remote_that_is_a_file_is_refused(tmp_path):
 def test_a_root_cache_moved_by_config_is_refused_before_any_task(tmp_path, status_calls):
     """Local tasks fill the root's cache; pipeline/a's .dvc/config names the root's .dvc/cache,
     which `dvc cache dir --local` moved away: the head could not check pipeline/a out."""
-    repo = one_pipeline_suite(tmp_path / "repo", QUICK)
+    repo = one_pipeline_suite(tmp_path / "repo", QUICK, stamped=True)
     dvc(repo, "cache", "dir", "--local", str(tmp_path / "elsewhere"))
     before = _files(tmp_path)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(repo), "--workers", "2"])
@@ -100,6 +100,9 @@ def test_a_root_cache_moved_by_config_is_refused_before_any_task(tmp_path, statu
     built = run_suite(repo, workers=2, echo=lambda line: None)
     assert sorted(run.pipeline for run in built.pipelines) == [".", "pipeline/a"]
     assert built.head_ran == ("pipeline/suite:leaderboard",)
+    lines: list[str] = []  # built at this protocol (stamped): current, from git and DVC
+    assert run_suite(repo, workers=2, echo=lines.append).pipelines == ()
+    assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"
 
 
 # -- 2. a --ray address where something other than Ray answers ---------------------------------
