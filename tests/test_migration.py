@@ -212,6 +212,12 @@ def test_a_run_killed_after_its_first_commit_resumes_in_a_fresh_clone(lab, tmp_p
         run(resumed, "git", "rev-parse", tree).stdout
         == run(one_go, "git", "rev-parse", tree).stdout
     )
+    # The migration has ended: from git alone, nothing is left to build or commit.
+    last = head(resumed)
+    ended = suite_run(resumed, "--commit")
+    assert ended.returncode == 0, ended.stdout + ended.stderr
+    assert ended.stdout.splitlines()[-1].endswith("nothing to run"), ended.stdout
+    assert head(resumed) == last  # no commit
 
 
 @pytest.fixture
