@@ -22,13 +22,8 @@ from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
 from oodrl.cli import app
-from oodrl.suite.run import (
-    RUN_META,
-    _check_reachable,
-    _unchanged_since_found_current,
-    _up_to_date,
-    run_suite,
-)
+from oodrl.suite.migration import project_states
+from oodrl.suite.run import RUN_META, _check_reachable, _up_to_date, run_suite
 from oodrl.testing.pipeline import run
 
 pytestmark = pytest.mark.slow
@@ -76,16 +71,27 @@ def test_local_workers_leave_the_locks_of_a_serial_run(fresh_suite, serial_locks
     assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"  # DVC said so
     assert locks(fresh_suite) == serial_locks
 
-    # Then nothing DVC reads has changed: no `dvc status` is needed to know it.
+    # Then nothing has changed: the pipelines are current from git alone, the suite by DVC.
+    lines.clear()
     run_suite(fresh_suite, workers=2, echo=lines.append)
-    assert "(no file DVC checks changed since they were found so)" in lines[-1]
-    # An output edited, even back to what it was, means asking DVC again.
+    assert lines == [
+        "suite: 3 projects; checking the DVC remote first",
+        "suite: from git, 2 of 2 pipelines current",
+        "suite: all 3 projects are up to date; nothing to run",
+    ]
+    # A git-tracked result edited is not what its lock records: DVC and git alone both say so;
+    # edited back to what it was, the pipeline is current again.
     results = fresh_suite / "pipeline" / "cartpole" / "reports" / "results.yaml"
     kept = results.read_bytes()
     results.write_bytes(kept + b"# edited\n")
     assert not _up_to_date(fresh_suite / "pipeline" / "cartpole")  # DVC: stale
-    assert not _unchanged_since_found_current(fresh_suite, [".", "pipeline/cartpole", SUITE])
+    [state] = project_states(fresh_suite, ["pipeline/cartpole"])
+    assert state.status == "stale" and "reports/results.yaml is not what its lock records" in (
+        "; ".join(state.reasons)
+    )
     results.write_bytes(kept)
+    [state] = project_states(fresh_suite, ["pipeline/cartpole"])
+    assert state.status == "current"
     run_suite(fresh_suite, workers=2, echo=lines.append)
     assert lines[-1] == "suite: all 3 projects are up to date; nothing to run"
 
@@ -108,11 +114,14 @@ def test_an_uncommitted_input_is_refused_before_anything_runs(fresh_suite):
     before = locks(fresh_suite)
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(fresh_suite)])
     assert result.exit_code == 2
-    *progress, error = result.output.splitlines()  # the status checks found what is stale
-    assert progress == [
-        "suite: 3 projects; checking the DVC remote first",
-        "suite: checking 3 projects with dvc status (2 at a time)",
-    ]
+    *progress, error = result.output.splitlines()  # git alone found what is stale
+    assert len(progress) == 2
+    assert progress[0] == "suite: 3 projects; checking the DVC remote first"
+    # The copy's tiny params are not what its committed locks record: both pipelines stale, the
+    # root's first reason its params.yaml (the edit among them).
+    assert progress[1].startswith(
+        "suite: from git, 0 of 2 pipelines current; stale: . (check_params: params.yaml"
+    ), progress[1]
     assert "params.yaml: uncommitted" in error
     assert locks(fresh_suite) == before
 
