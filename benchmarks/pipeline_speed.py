@@ -289,7 +289,7 @@ def knob_runs(repo: Path, env: dict | None = None) -> dict[str, tuple[float, int
 
 
 def main() -> None:
-    from oodrl.suite.run import suite_pipelines
+    from oodrl.suite.pipeline import suite_pipelines
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     every = suite_pipelines(ROOT)

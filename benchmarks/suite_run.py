@@ -86,7 +86,7 @@ def on_local_ray_cluster(repo: Path, nodes: int, remote: Path) -> tuple[float, o
 
 
 def main() -> None:
-    from oodrl.suite.run import suite_pipelines
+    from oodrl.suite.pipeline import suite_pipelines
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     every = suite_pipelines(ROOT)

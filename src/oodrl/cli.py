@@ -713,9 +713,10 @@ def pipeline_write(root: RootOption = Path(".")) -> None:
 def pipeline_check(root: RootOption = Path(".")) -> None:
     """Fail unless every pipeline's dvc.yaml is what `oodrl pipeline write` writes and every
     project's locks are current, or pending in a change of protocol (SPEC §26)."""
-    from oodrl.suite.migration import summary
-    from oodrl.suite.pipeline import check, pipeline_dirs
+    from oodrl.suite.migration import check, summary
+    from oodrl.suite.pipeline import check_files, pipeline_dirs
 
+    check_files(root)
     states = check(root)
     typer.echo(f"{len(pipeline_dirs(root))} pipelines: every dvc.yaml is current; "
                f"{summary(states)}")  # fmt: skip

@@ -74,7 +74,7 @@ def project_states(
     leaderboard reads). With `stamps`, a project whose check_params deps moved has its code
     stamps computed (tens of seconds a project), so that its reasons name the stages whose code
     changed, or say that none did; without, the moved deps are the reason."""
-    from oodrl.suite.run import suite_pipelines
+    from oodrl.suite.pipeline import suite_pipelines
 
     root = Path(root).resolve()
     known = suite_pipelines(root)

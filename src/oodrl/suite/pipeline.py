@@ -33,12 +33,9 @@ from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from oodrl.errors import ConfigError
-
-if TYPE_CHECKING:
-    from oodrl.suite.migration import ProjectState
 
 CLI_MODULE = "oodrl.cli"
 CODE_DIR = "src"  # the package sources' directory in the project
@@ -958,19 +955,9 @@ def _first_difference(expected: str, text: str) -> str:
     return f"unexpected {extra[0].strip()!r}" if extra else "lines in another order"
 
 
-def check(root: Path) -> list[ProjectState]:
-    """Raise a one-line ConfigError unless every pipeline's dvc.yaml is up to date, and one
-    naming each stale project unless every project's committed locks are current or pending
-    in a change of protocol (`oodrl.suite.migration`, SPEC §26); each project's state."""
-    check_files(root)
-    from oodrl.suite import migration
-
-    return migration.check(root)
-
-
 def check_files(root: Path) -> None:
     """Raise a one-line ConfigError unless every generated DVC file of the suite is what
-    `oodrl pipeline write` writes (the locks are `check`'s)."""
+    `oodrl pipeline write` writes (the locks are `oodrl.suite.migration.check`'s)."""
     for directory in pipeline_dirs(root):
         check_pipeline(directory / "dvc.yaml")
     for path, expected in subrepo_files(root / SUITE_DIR, root).items():
@@ -985,3 +972,21 @@ def check_files(root: Path) -> None:
             f"{SUITE_DIR / 'dvc.yaml'} is not what `oodrl pipeline write` writes "
             f"({_first_difference(rendered_suite(root), text)}); run `oodrl pipeline write`."
         )
+
+
+def suite_pipelines(root: Path) -> list[str]:
+    """The root's pipeline (the paper's default) and every run the suite's leaderboard reads (the
+    pipelines whose results its generated dvc.yaml depends on), relative to the root ('.' is the
+    root's own). A pipeline `oodrl new` made, or a policy not yet in
+    `oodrl.suite.environments.MORE_POLICIES`, is not the suite's: build it with `dvc repro` in its
+    directory."""
+    import yaml
+
+    suite = root / SUITE_DIR / "dvc.yaml"
+    if not suite.is_file():
+        raise ConfigError(f"--root {root}: not an oodrl suite (no {SUITE_DIR}/dvc.yaml); pass the "
+                          "repository's root, where `oodrl pipeline write` put it.")  # fmt: skip
+    stage = yaml.safe_load(suite.read_text())["stages"]["leaderboard"]
+    results = [Path(d) for d in stage["deps"] if d.endswith("/reports/results.yaml")]
+    runs = {(root / SUITE_DIR / d).resolve().parent.parent.relative_to(root) for d in results}
+    return [".", *sorted(r.as_posix() for r in runs)]

@@ -69,6 +69,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from oodrl.errors import ConfigError, OodrlError
+from oodrl.suite.pipeline import suite_pipelines
 from oodrl.suite.scratch import (
     DEAD_TASK_FOLDER,
     DVC_CONFIG_FOLDER,
@@ -142,26 +143,6 @@ class Remote:
     name: str
     options: dict[str, str]
     writable: bool = True
-
-
-def suite_pipelines(root: Path) -> list[str]:
-    """The root's pipeline (the paper's default) and every run the suite's leaderboard reads (the
-    pipelines whose results its generated dvc.yaml depends on), relative to the root ('.' is the
-    root's own). A pipeline `oodrl new` made, or a policy not yet in
-    `oodrl.suite.environments.MORE_POLICIES`, is not the suite's: build it with `dvc repro` in its
-    directory."""
-    import yaml
-
-    from oodrl.suite.pipeline import SUITE_DIR
-
-    suite = root / SUITE_DIR / "dvc.yaml"
-    if not suite.is_file():
-        raise ConfigError(f"--root {root}: not an oodrl suite (no {SUITE_DIR}/dvc.yaml); pass the "
-                          "repository's root, where `oodrl pipeline write` put it.")  # fmt: skip
-    stage = yaml.safe_load(suite.read_text())["stages"]["leaderboard"]
-    results = [Path(d) for d in stage["deps"] if d.endswith("/reports/results.yaml")]
-    runs = {(root / SUITE_DIR / d).resolve().parent.parent.relative_to(root) for d in results}
-    return [".", *sorted(r.as_posix() for r in runs)]
 
 
 # -- one task: one pipeline in its own clone ----------------------------------------------------

@@ -114,7 +114,7 @@ def detector_block(class_path: str, features: str | None, options: Sequence[str]
 
 def suite_runs(root: Path) -> list[str]:
     """The pipelines the leaderboard reads (the root's own pipeline is not one of them)."""
-    from oodrl.suite.run import suite_pipelines
+    from oodrl.suite.pipeline import suite_pipelines
 
     return [pipeline for pipeline in suite_pipelines(root) if pipeline != "."]
 
