@@ -26,7 +26,7 @@ from oodrl.suite.pipeline import (
     SUBREPO_FILES,
     TEMPLATE,
     Project,
-    check,
+    check_files,
     check_pipeline,
     kind_files,
     rendered,
@@ -51,7 +51,7 @@ def _files(repo_root: Path, verb: str, name: str | None = None, params=None) -> 
 
 # -- the committed pipelines -----------------------------------------------------------------
 def test_committed_pipelines_are_what_pipeline_write_writes(repo_root, monkeypatch):
-    check(repo_root)
+    check_files(repo_root)
     monkeypatch.chdir(repo_root)
     result = CliRunner().invoke(app, ["pipeline", "check"])
     assert result.exit_code == 0, result.output
@@ -67,7 +67,7 @@ def test_a_hand_edited_pipeline_is_refused(tmp_path, repo_root):
         tmp_path / "pipeline/suite/dvc.yaml",
         *(tmp_path / "pipeline/suite" / name for name in SUBREPO_FILES),
     ]
-    check(tmp_path)
+    check_files(tmp_path)
     with (tmp_path / "dvc.yaml").open("a") as pipeline:
         pipeline.write("# an edit\n")
     with pytest.raises(ConfigError, match="run `oodrl pipeline write`") as info:
@@ -139,7 +139,7 @@ def test_environment_pipeline_paths_are_relative_to_its_directory(env_project):
     assert stages["train_policy"]["outs"][0] == {
         "models/policy.pt": {"cache": False, "persist": True}
     }
-    check(env_project)
+    check_files(env_project)
 
 
 def test_bytecode_beside_the_sources_leaves_an_environment_project_up_to_date(tmp_path, repo_root):
@@ -174,7 +174,7 @@ def test_a_shared_fan_out_change_makes_environment_pipelines_stale(env_project):
         check_pipeline(env_project / "pipeline" / "cartpole" / "dvc.yaml")
     write(env_project)
     assert not (env_project / detector_pipeline("pedm")).exists()
-    check(env_project)
+    check_files(env_project)
 
 
 def test_an_environment_pipeline_without_its_dvc_project_is_refused(env_project):
@@ -327,7 +327,7 @@ def test_plugin_is_a_dep_of_check_params_once_written(plugin_project):
     assert deps == ["params.yaml", "src/oodrl", "plugin_helpers.py", "speed_plugin.py"]
     (plugin_project / "dvc.yaml").write_text(text.replace("  - plugin_helpers.py\n", ""))
     with pytest.raises(ConfigError, match="oodrl pipeline write"):
-        check(plugin_project)
+        check_files(plugin_project)
 
 
 # -- what the stage commands really import ---------------------------------------------------
