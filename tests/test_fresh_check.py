@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from tiny_pipeline import DETECTORS
+from tiny_pipeline import DETECTORS, file_stamps
 
 pytestmark = pytest.mark.slow
 
@@ -23,20 +23,12 @@ FAULTS = ["stuck_actuator"]
 STREAMS, EPISODES = 7, 3
 
 
-def _files(directory: Path) -> dict[str, tuple[int, int]]:
-    return {
-        p.relative_to(directory).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns)
-        for p in directory.rglob("*")
-        if p.is_file()
-    }
-
-
 @pytest.fixture
 def pipeline(built_repo) -> Path:
     """The tiny pipeline, checked to be as it was after the test: others read and copy it."""
-    before = _files(built_repo)
+    before = file_stamps(built_repo)
     yield built_repo
-    assert _files(built_repo) == before, "fresh_check.py wrote into the pipeline's directory"
+    assert file_stamps(built_repo) == before, "fresh_check.py wrote into the pipeline's directory"
 
 
 def fresh_check(directory: Path, *args: str) -> subprocess.CompletedProcess:

@@ -65,3 +65,13 @@ def build(repo_root: Path, base: Path, default: dict) -> Path:
     # train_policy may run (its deps changed since dvc.lock was written) but never retrains.
     assert {name: (repo / name).read_bytes() for name in POLICY_FILES} == policy
     return repo
+
+
+def file_stamps(directory: Path) -> dict[str, tuple[int, int]]:
+    """Each file's size and mtime under `directory`: a test that reads the shared tiny pipeline
+    checks with it that it wrote nothing there (other tests read and copy it)."""
+    return {
+        p.relative_to(directory).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns)
+        for p in directory.rglob("*")
+        if p.is_file()
+    }

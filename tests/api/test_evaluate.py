@@ -7,11 +7,10 @@ from __future__ import annotations
 
 import os
 import sys
-from pathlib import Path
 
 import pandas as pd
 import pytest
-from tiny_pipeline import DETECTORS, INJECTORS
+from tiny_pipeline import DETECTORS, INJECTORS, file_stamps
 
 import oodrl
 from oodrl.config import load_params
@@ -22,23 +21,15 @@ DETECTOR = "mahalanobis_distance"
 KEYS = ["fault", "tier", "metric"]
 
 
-def _files(directory: Path) -> dict[str, tuple[int, int]]:
-    return {
-        p.relative_to(directory).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns)
-        for p in directory.rglob("*")
-        if p.is_file()
-    }
-
-
 @pytest.fixture
 def tiny_pipeline(built_repo):
     """The tests' tiny pipeline (tests/tiny_pipeline.py), built once a session: the root
     pipeline on two detectors and two faults, a post-hoc observation fault (live at the tiers)
     and an online one. Other tests read and copy it: evaluate must leave it as it was."""
     assert DETECTOR in DETECTORS and INJECTORS == ["observation_delay", "stuck_actuator"]
-    before = _files(built_repo)
+    before = file_stamps(built_repo)
     yield built_repo
-    assert _files(built_repo) == before, "oodrl.evaluate wrote into the pipeline's directory"
+    assert file_stamps(built_repo) == before, "oodrl.evaluate wrote into the pipeline's directory"
 
 
 @pytest.mark.slow
