@@ -523,7 +523,7 @@ def _build_suite(
     start: float,
     plan: _Plan,
 ) -> SuiteRun:
-    from oodrl.suite.migration import project_states
+    from oodrl.suite.migration import project_states, target_version
     from oodrl.suite.pipeline import SUITE_DIR
 
     pipelines = plan.pipelines
@@ -563,7 +563,7 @@ def _build_suite(
                           f"pending pipelines only: relock as the change needs, or run without "
                           f"--commit.")  # fmt: skip
     building = [pipeline for pipeline in todo if pipeline in plan.chosen]
-    version = target_version(root)
+    version = target_version()  # the version the states above were judged against
     if not todo and _up_to_date(root / SUITE_DIR):
         echo(f"suite: all {len(projects)} projects are up to date; nothing to run")
         return SuiteRun((), (), time.perf_counter() - start)
@@ -660,13 +660,6 @@ def _why_stale(state) -> str:
 def _clock(seconds: float) -> str:
     minutes, second = divmod(int(seconds), 60)
     return f"{minutes // 60}:{minutes % 60:02d}:{second:02d}"
-
-
-def target_version(root: Path) -> int | None:
-    """The protocol version the checkout's own code stamps results with (its stages run it)."""
-    stamp = root / "src" / "oodrl" / "metrics" / "stamp.py"
-    found = re.search(r"^PROTOCOL_VERSION = (\d+)", _text_or_empty(stamp), re.MULTILINE)
-    return int(found[1]) if found else None
 
 
 #: The subject of the commit `--commit` makes for a pipeline: the next run reads each
