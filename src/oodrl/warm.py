@@ -37,14 +37,17 @@ SWITCH_VARIABLE = "OODRL_WARM"
 #: A server with no request for this long exits.
 IDLE_S = 120.0
 #: Imported by the server before it serves: what stage commands import (`import pyod` alone
-#: takes 1.4 s: scikit-learn, numba, scipy). oodrl.cli first: it pins the library thread pools
-#: to one thread before numpy loads (`oodrl.parallel`). A missing one is skipped. torch is left
-#: out: importing it starts a thread.
+#: takes 1.4 s: scikit-learn, numba, scipy; torch and the policy loader 2.9 s, in every stage
+#: that runs the policy). oodrl.cli first: it pins the library thread pools to one thread before
+#: numpy loads (`oodrl.parallel`); so pinned, importing torch starts no thread (unpinned, its
+#: numpy's OpenBLAS starts its thread server), and an import that does start one keeps the
+#: server from serving (below). A missing one is skipped.
 PRELOADED = (
-    "oodrl.cli", "pyod", "pyod.models.hbos", "pyod.models.knn", "pyod.models.iforest",
-    "pyod.models.lof", "pyod.models.ecod", "scipy.stats", "gymnasium", "zarr", "oodrl.stages.score",
-    "oodrl.stages.collect", "oodrl.stages.fit", "oodrl.stages.metrics",
-    "oodrl.stages.tier_metrics", "oodrl.stages.impact", "oodrl.stages.render",
+    "oodrl.cli", "oodrl.policies.load", "pyod", "pyod.models.hbos", "pyod.models.knn",
+    "pyod.models.iforest", "pyod.models.lof", "pyod.models.ecod", "scipy.stats", "gymnasium",
+    "zarr", "oodrl.stages.score", "oodrl.stages.collect", "oodrl.stages.fit",
+    "oodrl.stages.metrics", "oodrl.stages.tier_metrics", "oodrl.stages.impact",
+    "oodrl.stages.render",
 )  # fmt: skip
 #: Environment variables that no import reads and that change on the way to a stage (DVC runs
 #: it through a shell, which sets or drops its own: a virtual environment's PS1 is exported and

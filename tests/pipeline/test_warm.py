@@ -105,7 +105,9 @@ def _records(env: dict[str, str], *argv: str) -> list[bool]:
 def test_a_command_under_dvc_runs_in_the_warm_server(tmp_path, warm_env):
     repo = tmp_path  # --version reads nothing of a pipeline: no copy of it
     first = run(repo, "oodrl", "--version", env=warm_env).stdout
-    _warmed(repo, warm_env)
+    server = _warmed(repo, warm_env)
+    # It serves with torch loaded (the policy's stages fork it ready: 2.9 s each otherwise).
+    assert "libtorch_cpu" in Path(f"/proc/{server}/maps").read_text()
     second = run(repo, "oodrl", "--version", env=warm_env)
     assert second.stdout == first and second.stdout.startswith("oodrl ")
     assert second.stderr == ""
