@@ -210,14 +210,22 @@ def test_committed_results_reshaped_into_runs_agree_with_rliable(rly, numpy_glob
     )
 
 
+#: The environments whose committed runs the policies-as-runs test reads: one with continuous and
+#: one with discrete actions (the policy view runs on discrete ones only), each with its three
+#: policies. Reading all 21 runs is 66 MB of YAML tier results (180 s of libyaml on an idle
+#: core); these six are 14 MB, and the arithmetic compared is the same for every run.
+POLICIES_AS_RUNS = ("Acrobot-v1", "Pendulum-v1")
+
+
 @pytest.fixture(scope="module")
 def committed_runs():
-    """Each metric's mild cells of every committed run (every policy of every environment, SPEC
-    §16), as the suite's leaderboard reads them."""
+    """Each metric's mild cells of the committed runs of `POLICIES_AS_RUNS` (every policy of
+    each, SPEC §16), as the suite's leaderboard reads them."""
     from oodrl.report.leaderboard import read_inputs
     from oodrl.stages.leaderboard import results_files
 
-    files = results_files(ROOT)
+    files = {key: paths for key, paths in results_files(ROOT).items() if key[0] in POLICIES_AS_RUNS}
+    assert len(files) == 3 * len(POLICIES_AS_RUNS), sorted(files)
     skip_unless_checked_out(paths[0] for paths in files.values())
     cells = read_inputs(files).cells
     return {  # the detectors every run has, as the lead board ranks them
@@ -237,9 +245,10 @@ def test_the_suites_policies_as_runs_agree_with_rliable(committed_runs, metric):
     policies = sorted({c.policy for c in mild})
     tasks = sorted({(c.environment, c.fault) for c in mild})
     shared = [(e, f) for e, f in tasks if all(Cell(e, p, f, "mild") in mild for p in policies)]
-    # A real matrix, not a corner of one: at protocol version 3, 20 of the 43 mild tasks have a
-    # cell for every policy (a tier is found per policy, and some policy cannot reach it).
-    assert len(policies) == 3 and len(shared) >= 20
+    # A real matrix: at protocol version 3, 5 of these environments' 9 mild tasks (20 of the
+    # suite's 43) have a cell for every policy (a tier is found per policy, and some policy
+    # cannot reach it).
+    assert len(policies) == 3 and len(shared) >= 5
     cells = {
         Cell(e, p, f, "mild"): mild[Cell(e, p, f, "mild")] for e, f in shared for p in policies
     }
