@@ -18,50 +18,37 @@ from __future__ import annotations
 
 import pytest
 
-#: Seconds a module's tests took (setup, call and teardown summed, `pytest -n 2 --durations=0`
-#: at 0416f8e) on a loaded 2-core machine, for the modules over 50 s (test_evaluate.py without
-#: the tiny pipeline it now shares). Only the order reads them: a stale or missing entry costs
-#: time, never a result.
+#: Seconds a module's tests took (setup, call and teardown summed, from the junit file of
+#: `.ci/run` at 32f1e4b: `pytest -n 2` beside CI's reproducibility check, on a 2-core machine), for
+#: the modules over 40 s. A group's first module pays its shared build (test_remote's 885 s hold
+#: the serial suite's). Only the order reads them: a stale or missing entry costs time, never a
+#: result.
 COST_S: dict[str, float] = {
-    "tests/test_suite_run.py": 1360,
-    "tests/test_migration.py": 540,  # new: its lab's build and a resumed build, -p no:xdist, loaded
-    "tests/test_protocol_every_environment.py": 889,
-    "tests/pipeline/test_pipeline.py": 867,
-    "tests/detectors/test_library.py": 696,
-    "tests/pipeline/test_failures.py": 622,
-    "tests/test_suite_try.py": 576,
-    "tests/metrics/test_leaderboard_rliable.py": 416,
-    "tests/pipeline/test_deps.py": 411,
-    "tests/test_remote.py": 389,
-    "tests/test_readme.py": 361,
-    "tests/test_new.py": 342,
-    "tests/test_fresh_check.py": 324,
-    "tests/api/test_quickstart.py": 256,
-    "tests/pipeline/test_environments.py": 224,
-    "tests/hostile/test_runtime_hostile.py": 186,
-    "tests/detectors/test_sanity.py": 180,
-    "tests/faults/test_remote_faults.py": 177,
-    "tests/test_readonly_remote.py": 163,
-    "tests/api/test_examples.py": 154,
-    "tests/pipeline/test_warm.py": 132,
-    "tests/test_suite.py": 129,
-    "tests/test_recorded.py": 126,
-    "tests/api/test_evaluate.py": 111,
-    "tests/injectors/test_every_environment.py": 111,
-    "tests/api/test_load_results.py": 104,
-    "tests/pipeline/test_recovery.py": 99,
-    "tests/detectors/test_machine_independence.py": 98,
-    "tests/test_impact.py": 89,
-    "tests/report/test_leaderboard_page.py": 79,
-    "tests/policies/test_train.py": 76,
-    "tests/test_cross_kernel.py": 73,
-    "tests/faults/test_machine_faults.py": 73,
-    "tests/test_numerics.py": 70,
-    "tests/hostile/test_suite_run_hostile.py": 60,
-    "tests/hostile/test_new_hostile.py": 59,
-    "tests/faults/test_runs.py": 54,
-    "tests/detectors/test_contract.py": 54,
-    "tests/hostile/test_suite_try_hostile.py": 51,
+    "tests/test_suite_run.py": 939,
+    "tests/test_remote.py": 886,
+    "tests/test_migration.py": 507,
+    "tests/api/test_evaluate.py": 486,
+    "tests/metrics/test_leaderboard_rliable.py": 90,  # 424 reading all 21 runs; now six
+    "tests/pipeline/test_pipeline.py": 402,
+    "tests/pipeline/test_failures.py": 393,
+    "tests/test_protocol_every_environment.py": 358,
+    "tests/pipeline/test_deps.py": 240,
+    "tests/test_readme.py": 237,
+    "tests/pipeline/test_warm.py": 159,
+    "tests/test_suite_try.py": 151,
+    "tests/pipeline/test_environments.py": 146,
+    "tests/hostile/test_runtime_hostile.py": 138,
+    "tests/test_new.py": 133,
+    "tests/detectors/test_library.py": 119,
+    "tests/test_readonly_remote.py": 109,
+    "tests/test_suite.py": 80,
+    "tests/pipeline/test_recovery.py": 71,
+    "tests/test_recorded.py": 67,
+    "tests/faults/test_remote_faults.py": 58,
+    "tests/report/test_leaderboard_page.py": 48,
+    "tests/hostile/test_suite_run_hostile.py": 42,
+    "tests/api/test_examples.py": 41,
+    "tests/policies/test_train.py": 40,
 }
 #: What a module without an entry in COST_S counts when it holds a test marked `slow`.
 SLOW_S = 50.0
@@ -85,7 +72,12 @@ GROUPS: dict[str, str] = {
     # asking for it while the first builds it would wait, idle, under its file lock.
     **{
         module: "serial_built_suite"
-        for module in ("tests/test_suite_run.py", "tests/test_suite_try.py", "tests/test_remote.py")
+        for module in (
+            "tests/test_suite_run.py",
+            "tests/test_suite_try.py",
+            "tests/test_remote.py",
+            "tests/test_migration.py",
+        )
     },
 }
 

@@ -25,10 +25,18 @@ import time
 from pathlib import Path
 
 import pytest
-from suite_repo import SUITE, code_env, head_commit, locks, two_environment_suite
+from suite_repo import (
+    SUITE,
+    code_env,
+    copy_built,
+    head_commit,
+    locks,
+    run_folder,
+    serial_built_suite,
+)
 
 from oodrl.suite.checkout_lock import checkout_lock
-from oodrl.suite.run import RUN_META
+from oodrl.suite.run import RUN_META, _push
 from oodrl.testing.pipeline import environment, run
 
 pytestmark = pytest.mark.slow
@@ -43,18 +51,21 @@ def version_of(repo: Path) -> int:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory, repo_root) -> tuple[Path, Path]:
-    """A lab's checkout and its DVC remote (a directory): the suite built by `oodrl suite run`
-    at this protocol, pushed and committed; then the protocol bumped and committed, no pipeline
-    rebuilt: every pipeline pending. Every clone below comes from it, and reads the remote over
-    HTTP, read-only: a clone pulls the outputs of the stages the bump left as they were and
-    computes the others, pushing nothing."""
+    """A lab's checkout and its DVC remote (a directory): the suite built at this protocol (the
+    test run's one serial build, `suite_repo.serial_built_suite`: the locks `oodrl suite run`
+    writes too, test_suite_run checks), pushed as `oodrl suite run` pushes a project, and
+    committed; then the protocol bumped and committed, no pipeline rebuilt: every pipeline
+    pending. Every clone below comes from it, and reads the remote over HTTP, read-only: a clone
+    pulls the outputs of the stages the bump left as they were and computes the others, pushing
+    nothing."""
     folder = tmp_path_factory.mktemp("lab")
-    repo = two_environment_suite(repo_root, head_commit(repo_root), folder / "repo")
+    built, _ = serial_built_suite(repo_root, head_commit(repo_root), run_folder(tmp_path_factory))
+    repo = copy_built(built, folder / "repo")
     remote = folder / "remote"
     remote.mkdir()
-    run(repo, "dvc", "remote", "add", "--local", "-d", "lab", str(remote))
-    built = suite_run(repo)
-    assert built.returncode == 0, built.stdout + built.stderr
+    for project in [*PIPELINES, SUITE]:  # each a DVC project of its own
+        run(repo / project, "dvc", "remote", "add", "--local", "-d", "lab", str(remote))
+        _push(repo / project, code_env(repo))
     run(repo, "git", "add", "-A")
     run(repo, "git", "commit", "-q", "-m", "built")
     stamp = repo / STAMP
