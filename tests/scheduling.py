@@ -59,6 +59,7 @@ GROUPS: dict[str, str] = {
         module: "built_repo"
         for module in (
             "tests/api/test_evaluate.py",
+            "tests/metrics/test_cells.py",
             "tests/test_fresh_check.py",
             "tests/pipeline/test_deps.py",
             "tests/pipeline/test_failures.py",

@@ -1,0 +1,291 @@
+"""Protocol 4's tier search (`oodrl.protocol.tier_search`) on synthetic faults whose impact curve
+R̃(σ) is known in closed form: a smooth one with per-episode noise, and a bimodal one (each
+episode either keeps its return or crashes past a severity of its own, from a two-mode clean
+return). Episodes are functions of (σ, reset seed) only, as the collector's are, so the common
+random numbers hold."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Sequence
+
+import numpy as np
+import pytest
+
+from oodrl.config import TierSearchConfig
+from oodrl.errors import ConfigError, ContractError
+from oodrl.protocol.impact import LEVELS, Estimate, Reference, reference_seeds, tier_tolerance
+from oodrl.protocol.tier_search import (
+    CrnSearchConfig,
+    ci_meets_level,
+    crn_reference_seeds,
+    crn_search_seeds,
+    crn_verify_seeds,
+    search_fault,
+)
+
+N_BOOT = 400
+GAP = 300.0  # clean mean − random mean
+
+
+@functools.cache
+def _latents(world: int, seed: int) -> np.ndarray:
+    return np.random.default_rng([world, seed]).standard_normal(3)
+
+
+class World:
+    """π's clean return and its return under the fault, per reset seed; records each call."""
+
+    def __init__(self, world: int, seeds: Sequence[int]) -> None:
+        self.world = world
+        self.calls: list[tuple[float, list[int]]] = []
+        self.clean = {int(s): self.clean_return(int(s)) for s in seeds}
+        self.random = np.random.default_rng([world, 10**9]).normal(-100.0, 30.0, size=100)
+
+    def reference(self) -> Reference:
+        return Reference(dict(self.clean), self.random, "synthetic")
+
+    def clean_return(self, seed: int) -> float:
+        return 200.0 + 30.0 * float(_latents(self.world, seed)[0])
+
+    def loss(self, severity: float, seed: int) -> float:
+        raise NotImplementedError
+
+    def true(self, severity: float) -> float:
+        raise NotImplementedError
+
+    def __call__(self, severity: float, seeds: Sequence[int]) -> np.ndarray:
+        self.calls.append((severity, list(seeds)))
+        return np.array([self.clean[s] - self.loss(severity, s) for s in seeds])
+
+
+class Smooth(World):
+    """R̃(σ) = 1 − 0.5σ − 0.25σ²; each episode loses its share times (1 + 0.2 z) plus 5σ·w."""
+
+    def true(self, severity: float) -> float:
+        return 1.0 - 0.5 * severity - 0.25 * severity**2
+
+    def loss(self, severity: float, seed: int) -> float:
+        _, z, w = _latents(self.world, seed)
+        return GAP * (1 - self.true(severity)) * (1 + 0.2 * z) + 5.0 * severity * w
+
+
+class Bimodal(World):
+    """Clean returns from two modes (240 or 40); past its own threshold τ (P(τ < σ) = σ²) an
+    episode crashes to −60 ± 30. R̃(σ) = 1 − (σ²·(E C − E D) + 10σ) / (E C − E R)."""
+
+    def clean_return(self, seed: int) -> float:
+        rng = np.random.default_rng([self.world, seed, 1])
+        return float(rng.normal(240.0, 15.0) if rng.random() < 0.7 else rng.normal(40.0, 20.0))
+
+    def true(self, severity: float) -> float:
+        return 1.0 - (severity**2 * (180.0 + 60.0) + 10.0 * severity) / (180.0 + 100.0)
+
+    def loss(self, severity: float, seed: int) -> float:
+        rng = np.random.default_rng([self.world, seed, 2])
+        tau, crash = np.sqrt(rng.random()), rng.normal(-60.0, 30.0)
+        faulty = crash if severity > tau else self.clean[seed]
+        return self.clean[seed] - faulty + 10.0 * severity
+
+
+def run(kind: type[World], world: int, *, seed: int = 0, config=None, coarse=None):
+    config = config or CrnSearchConfig()
+    fault = kind(world, crn_reference_seeds(seed, config))
+    result = search_fault(
+        fault, fault.reference(), seed=seed, config=config, coarse=coarse, n_boot=N_BOOT
+    )
+    return fault, result
+
+
+def _root(fault: World, level: float) -> float:
+    grid = np.linspace(0.0, 1.0, 100_001)
+    return float(grid[np.argmax(fault.true(grid) <= level)])
+
+
+@pytest.mark.parametrize("world", range(4))
+def test_each_tier_is_the_root_of_the_true_curve(world):
+    """On the smooth fault every tier lands where the true curve meets its level, within the
+    tolerance plus the 100 common episodes' noise."""
+    fault, result = run(Smooth, world)
+    for name, level in LEVELS.items():
+        severity = result.tiers[name].severity
+        assert severity is not None
+        assert abs(fault.true(severity) - level) <= tier_tolerance(level, 0.015) + 0.01
+        assert abs(severity - _root(fault, level)) < 0.03
+
+
+def test_the_coarse_curve_only_guides_and_the_root_is_the_same():
+    """Probe placement from a (biased) coarse curve changes where the probes go, not what the
+    fit finds: the same sample root within the tolerance."""
+    grid = [0.0, *(0.1 * k for k in range(1, 11))]
+    coarse = (grid, [1.0 - 0.45 * s - 0.3 * s**2 for s in grid])
+    fault, guided = run(Smooth, 7, coarse=coarse)
+    _, blind = run(Smooth, 7)
+    assert [p.severity for p in guided.probes] != [p.severity for p in blind.probes]
+    for name, level in LEVELS.items():
+        assert abs(fault.true(guided.tiers[name].severity) - level) <= 0.035
+
+
+@pytest.mark.parametrize("world", range(8))
+def test_bimodal_tiers_are_ordered_and_near_their_levels(world):
+    fault, result = run(Bimodal, world)
+    severities = [result.tiers[name].severity for name in LEVELS]
+    assert None not in severities
+    assert severities == sorted(severities)
+    for name, level in LEVELS.items():
+        # 100 bimodal episodes: R̃'s standard error up to ~0.03 at severe.
+        assert abs(fault.true(result.tiers[name].severity) - level) <= 0.09
+
+
+class Wavy(Smooth):
+    """A curve that rises in places (R̃ = 1 − 0.6σ + 0.08 sin 20σ): its levels are crossed
+    more than once, and the monotone fit still orders the tiers."""
+
+    def true(self, severity):
+        return 1.0 - 0.6 * severity + 0.08 * np.sin(20 * severity)
+
+
+@pytest.mark.parametrize("world", range(3))
+def test_tiers_stay_ordered_on_a_curve_that_rises_in_places(world):
+    _, result = run(Wavy, world)
+    severities = [result.tiers[name].severity for name in LEVELS]
+    assert None not in severities and severities == sorted(severities)
+    xs, fit = result.curve
+    assert np.all(np.diff(fit) <= 0) and xs[0] == 0.0 and len(xs) == len(result.probes) + 1
+
+
+def test_every_probe_shares_the_search_seeds_and_verification_never_does():
+    fault, result = run(Bimodal, 3)
+    search = crn_search_seeds(0, result.config)
+    probe_calls = fault.calls[: len(result.probes)]
+    verify_calls = fault.calls[len(result.probes) :]
+    assert all(seeds == search for _, seeds in probe_calls)
+    assert [s for s, _ in probe_calls] == [p.severity for p in result.probes]
+    verify = {s for _, seeds in verify_calls for s in seeds}
+    assert verify and verify.isdisjoint(search)
+    per_tier = [set(seeds) for seeds in result.verify_seeds.values()]
+    assert sum(map(len, per_tier)) == len(set().union(*per_tier))  # no tier shares a seed
+
+
+def test_seed_streams_are_disjoint_from_each_other_and_protocol_3():
+    config = CrnSearchConfig()
+    for seed in (0, 7, 123_456):
+        search = set(crn_search_seeds(seed, config))
+        verify = [
+            set(crn_verify_seeds(seed, config, i, b))
+            for i in range(len(LEVELS))
+            for b in range(config.max_verify_batches)
+        ]
+        every_verify = set().union(*verify)
+        assert len(every_verify) == sum(map(len, verify))
+        assert search.isdisjoint(every_verify)
+        protocol3 = set(reference_seeds(seed, 30, TierSearchConfig()))
+        assert protocol3.isdisjoint(search | every_verify)
+
+
+@pytest.mark.parametrize("kind", [Smooth, Bimodal])
+def test_the_budget_is_respected_and_stated(kind):
+    fault, result = run(kind, 5)
+    spent = sum(len(seeds) for _, seeds in fault.calls)
+    record = result.as_dict()["episodes"]
+    assert spent == record["total"] == result.episodes <= 900 == record["budget"]
+    assert record["search"] == 100 * len(result.probes) <= 600
+    batches = sum(t.batches for t in result.tiers.values())
+    assert batches <= 6 and record["verification"] == 50 * batches
+
+
+def test_a_small_budget_spends_less_and_a_too_small_one_is_refused():
+    config = CrnSearchConfig(max_probes=4, budget=650)
+    fault, result = run(Smooth, 1, config=config)
+    assert result.episodes <= 650
+    assert all(t.batches >= 1 for t in result.tiers.values())
+    with pytest.raises(ConfigError, match="budget"):
+        run(Smooth, 1, config=CrnSearchConfig(budget=700))
+
+
+def test_same_seed_same_result_and_another_seed_other_episodes():
+    a = run(Bimodal, 2, seed=11)[1].as_dict()
+    b = run(Bimodal, 2, seed=11)[1].as_dict()
+    c = run(Bimodal, 2, seed=12)[1].as_dict()
+    assert a == b
+    assert a["seeds"] != c["seeds"] and a["probes"] != c["probes"]
+
+
+def test_verification_goes_to_the_widest_ci():
+    """Every tier gets a batch first; the rest go to tiers still above the CI target, the
+    widest first: the bimodal fault's severe tier (most crashes) gets the most."""
+    _, result = run(Bimodal, 4)
+    tiers = result.tiers
+    assert all(t.batches >= 1 for t in tiers.values())
+    assert tiers["severe"].batches == max(t.batches for t in tiers.values()) > 1
+    assert tiers["benign"].verification.episodes == 50 * tiers["benign"].batches
+
+
+@pytest.mark.parametrize(
+    ("ci", "expected"),
+    [
+        ((0.93, 0.97), True),  # covers the level
+        ((0.955, 0.99), True),  # above, but within the tolerance (0.015)
+        ((0.97, 0.99), False),  # wholly above level + tolerance
+        ((0.90, 0.93), False),  # wholly below level − tolerance
+    ],
+)
+def test_verified_iff_the_ci_meets_the_band(ci, expected):
+    estimate = Estimate(0.3, sum(ci) / 2, ci, 100)
+    assert ci_meets_level(estimate, LEVELS["mild"], 0.015) is expected
+
+
+class Drifted(Smooth):
+    """Verification episodes lose `shift` of the gap more than the search's: a tier found on
+    the search seeds then misses its level on fresh ones."""
+
+    shift = 0.0
+
+    def loss(self, severity: float, seed: int) -> float:
+        fresh = seed - 950_000 >= 0
+        return super().loss(severity, seed) + (GAP * self.shift if fresh and severity else 0.0)
+
+
+@pytest.mark.parametrize(("shift", "verified"), [(0.0, True), (0.1, False)])
+def test_the_verified_flag_follows_the_fresh_episodes(shift, verified):
+    Drifted.shift = shift
+    _, result = run(Drifted, 6)
+    flags = {name: t.verified for name, t in result.tiers.items()}
+    assert set(flags.values()) == {verified}
+    record = result.as_dict()["tiers"]["moderate"]["verification"]
+    assert record["verified"] is verified and record["episodes"] >= 50
+
+
+class Shallow(Smooth):
+    """R̃ never falls below 0.85: the severe level is unreachable."""
+
+    def true(self, severity: float) -> float:
+        return 1.0 - 0.15 * severity
+
+
+def test_an_unreachable_level_is_probed_at_the_largest_severity_and_not_verified():
+    _, result = run(Shallow, 0)
+    severe = result.tiers["severe"]
+    assert severe.severity is None and severe.resolved and severe.verification is None
+    assert 1.0 in [p.severity for p in result.probes]
+    assert result.as_dict()["tiers"]["severe"]["severity"] == "unreachable"
+    assert result.tiers["moderate"].severity is not None
+
+
+def test_a_reference_without_the_search_seeds_is_refused():
+    config = CrnSearchConfig()
+    fault = Smooth(0, crn_search_seeds(0, config))
+    with pytest.raises(ContractError, match="clean return"):
+        search_fault(fault, fault.reference(), seed=0, config=config)
+
+
+def test_a_level_not_reached_when_the_probes_run_out_is_not_called_unreachable():
+    """One probe, aimed by a (too steep) coarse curve short of σ = 1: the levels the fit has
+    not reached are "not reached", with an open bracket, not "unreachable"."""
+    coarse = ([0.0, 0.5, 1.0], [1.0, 0.5, 0.0])
+    _, result = run(Shallow, 0, config=CrnSearchConfig(max_probes=1), coarse=coarse)
+    assert len(result.probes) == 1 and result.probes[0].severity < 1.0
+    severe = result.tiers["severe"]
+    assert severe.severity is None and not severe.resolved and not severe.unreachable
+    record = result.as_dict()["tiers"]["severe"]
+    assert record["severity"] == "not reached" and record["search"]["bracket"][1] is None
