@@ -30,11 +30,12 @@ has about the same distribution at every age, its per-age `quantile` near 1, so 
    windows by themselves. A high quantile rather than the maximum: the maximum of m values moves
    with m and with one outlier; the 0.9 quantile of 50 pooled values still has 5 above it.
 3. *Non-decreasing.* b̂ is replaced by its isotonic (non-decreasing) least-squares fit, by the
-   pool-adjacent-violators algorithm with equal weights. For i.i.d. residuals, the CUSUM started
-   at 0 is stochastically increasing in time (the Lindley recursion from its minimum), so its
-   quantiles are non-decreasing and the isotonic fit removes only estimation noise; unlike a
-   running maximum it is not biased upward by that noise. Where clean W truly dips (a calm phase
-   of every episode) the fit averages over the dip, a conservative b there.
+   pool-adjacent-violators algorithm with equal weights (scikit-learn's). For i.i.d.
+   residuals, the CUSUM started at 0 is stochastically increasing in time (the Lindley
+   recursion from its minimum), so its quantiles are non-decreasing and the isotonic fit removes
+   only estimation noise; unlike a running maximum it is not biased upward by that noise. Where
+   clean W truly dips (a calm phase of every episode) the fit averages over the dip, a
+   conservative b there.
 4. *Floor.* b ≥ `floor` × the standard deviation of the residual e_t on the held-out steps:
    W's increments are of that size, and early ages, where W is mostly 0, would otherwise divide
    by a quantile near 0 and turn one ordinary residual into a huge score.
@@ -78,18 +79,11 @@ def ages(restarts: np.ndarray) -> np.ndarray:
 
 
 def nondecreasing(values: np.ndarray) -> np.ndarray:
-    """The isotonic (non-decreasing) least-squares fit of a sequence, equal weights, by the
-    pool-adjacent-violators algorithm: blocks merged left to right in Python floats."""
-    sums: list[float] = []
-    sizes: list[int] = []
-    for value in np.asarray(values, dtype=np.float64).tolist():
-        total, size = value, 1
-        while sums and sums[-1] / sizes[-1] > total / size:
-            total += sums.pop()
-            size += sizes.pop()
-        sums.append(total)
-        sizes.append(size)
-    return np.repeat([total / size for total, size in zip(sums, sizes, strict=True)], sizes)
+    """The isotonic (non-decreasing) least-squares fit of a sequence, equal weights:
+    scikit-learn's pool-adjacent-violators, as the impact curves use it (`monotone_curve`)."""
+    from sklearn.isotonic import isotonic_regression
+
+    return np.asarray(isotonic_regression(np.asarray(values, dtype=np.float64)), dtype=np.float64)
 
 
 def pooled_quantiles(
