@@ -342,13 +342,13 @@ def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, 
     from oodrl.envs import ENVIRONMENTS
     from oodrl.policies.load import load_policy
     from oodrl.protocol.impact import (
-        UNREACHABLE,
         _normalised,
         clean_returns,
         episode_limit,
         faulty_returns,
         live_injectors,
         random_policy_returns,
+        tier_severity,
     )
 
     adapter = ENVIRONMENTS.get(params.env.id)()
@@ -364,12 +364,12 @@ def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, 
     injectors = live_injectors(params, faults, Path(ID_STORE))
     rows = []
     for fault in faults:
-        reachable = {n: float(t["severity"]) for n, t in tiers[fault].items()
-                     if t["severity"] != UNREACHABLE}  # fmt: skip
+        reachable = {n: tier_severity(t) for n, t in tiers[fault].items()
+                     if tier_severity(t) is not None}  # fmt: skip
         for name, t in tiers[fault].items():
-            if t["severity"] == UNREACHABLE:
+            if tier_severity(t) is None:  # unreachable, or not reached by the search
                 rows.append({"fault": fault, "tier": name, "level": t["level"],
-                             "severity": UNREACHABLE})  # fmt: skip
+                             "severity": t["severity"]})  # fmt: skip
         if not reachable:
             continue
         started = time.perf_counter()

@@ -119,7 +119,8 @@ def simulation_floor(pipeline: Path) -> Floor:
     from oodrl.io.store import write_trajectories
     from oodrl.policies.load import load_policy
     from oodrl.protocol import streams
-    from oodrl.protocol.impact import calibrate_impact, live_injectors
+    from oodrl.protocol.impact import live_injectors
+    from oodrl.protocol.tier_search import calibrate_impact
     from oodrl.protocol.tiers import read_tiers, tier_sets
 
     params = load_params(pipeline / "params.yaml")

@@ -16,10 +16,10 @@ Each draw is a fresh world (every episode's latent variables drawn anew) and run
 coarse impact curve (`impact_record` over the default `tiers.grid` on 30 episodes, the impact
 stage's), both:
 
-* protocol 3: `oodrl.protocol.impact.searched_tiers` itself with the default `tiers.search`
-  (`TierSearchConfig`: tolerance 0.015, 50 fresh episodes a probe, 4 probes a tier, 100
-  verification episodes), its `measure` the impact stage's (`paired_estimate` on the
-  evaluator's returns);
+* protocol 3: its search (`searched_tiers` below, the impact stage's until protocol 4, kept
+  here only for this comparison) with version 3's default `tiers.search` (`Protocol3Search`:
+  tolerance 0.015, 50 fresh episodes a probe, 4 probes a tier, 100 verification episodes), its
+  `measure` the impact stage's (`paired_estimate` on the evaluator's returns);
 * protocol 4: `oodrl.protocol.tier_search.search_fault` with its defaults (100 common search
   episodes, 6 probes, verification batches of 50, at most 6, CI target ±0.02, budget 900).
 
@@ -35,22 +35,23 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from oodrl.config import TiersConfig, TierSearchConfig
+from oodrl.config import SEARCH_SEED_OFFSET, VERIFY_SEED_OFFSET, TiersConfig
 from oodrl.protocol.impact import (
     LEVELS,
     Estimate,
     Reference,
     Returns,
+    _rounded,
     impact_curve_points,
     impact_record,
     paired_estimate,
     policy_seeds,
-    reference_seeds,
-    searched_tiers,
     tier_tolerance,
 )
 from oodrl.protocol.tier_search import (
@@ -62,6 +63,113 @@ from oodrl.protocol.tier_search import (
 
 COARSE_EPISODES = 30
 CI_TARGET = CrnSearchConfig().ci_target
+
+
+# -- protocol 3's tier search (SPEC §19 at version 3), continuous faults ------------------------
+@dataclass(frozen=True)
+class Protocol3Search:
+    """Version 3's `tiers.search` block and defaults."""
+
+    tolerance: float = 0.015
+    probe_episodes: int = 50
+    max_probes: int = 4
+    verify_episodes: int = 100
+
+
+def search_seeds(seed: int, search: Protocol3Search, tier_index: int, probe: int) -> list[int]:
+    """The fresh reset seeds of probe p of the i-th tier."""
+    first = (
+        seed
+        + SEARCH_SEED_OFFSET
+        + (tier_index * search.max_probes + probe) * (search.probe_episodes)
+    )
+    return list(range(first, first + search.probe_episodes))
+
+
+def verify_seeds(seed: int, search: Protocol3Search) -> list[int]:
+    """The held-out reset seeds of every tier's verification (no probe ever uses them)."""
+    first = seed + VERIFY_SEED_OFFSET
+    return list(range(first, first + search.verify_episodes))
+
+
+def protocol3_seeds(seed: int, search: Protocol3Search) -> list[int]:
+    """Every reset seed whose clean return version 3's search may read."""
+    probes = [
+        s
+        for tier_index in range(len(LEVELS))
+        for probe in range(search.max_probes)
+        for s in search_seeds(seed, search, tier_index, probe)
+    ]
+    return [*probes, *verify_seeds(seed, search)]
+
+
+def _on_target(estimate: Estimate, level: float, tolerance: float) -> bool:
+    return abs(estimate.normalised - level) <= tier_tolerance(level, tolerance)
+
+
+def search_tier(
+    level: float,
+    xs: Sequence[float],
+    monotone: Sequence[float],
+    measure: Callable[[float, int], Estimate],
+    search: Protocol3Search,
+) -> tuple[float | None, list[Estimate], bool]:
+    """Bracket the level on the coarse monotone curve (σ = 0 included), then probe inside the
+    bracket by safeguarded regula falsi (10%-90% of it), each probe on fresh episodes, until a
+    probe's R̃ is within the tolerance or the probes run out. Returns (σ: the first probe on
+    target, else the closest; None when the curve never reaches the level, probes, converged)."""
+    xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(monotone, dtype=np.float64)
+    below = np.flatnonzero(ys <= level)
+    if below.size == 0:
+        return None, [], False
+    i = max(int(below[0]), 1)
+    lo, y_lo, hi, y_hi = xs[i - 1], ys[i - 1], xs[i], ys[i]
+    probes: list[Estimate] = []
+    for probe in range(search.max_probes):
+        fraction = (y_lo - level) / (y_lo - y_hi) if y_lo > y_hi else 0.5
+        severity = round(float(lo + min(max(fraction, 0.1), 0.9) * (hi - lo)), 6)
+        estimate = measure(severity, probe)
+        probes.append(estimate)
+        if _on_target(estimate, level, search.tolerance):
+            return severity, probes, True
+        if estimate.normalised > level:
+            lo, y_lo = severity, min(estimate.normalised, y_lo)
+        else:
+            hi, y_hi = severity, max(estimate.normalised, y_hi)
+    closest = min(probes, key=lambda e: (abs(e.normalised - level), e.severity))
+    return closest.severity, probes, False
+
+
+def searched_tiers(
+    xs: Sequence[float],
+    monotone: Sequence[float],
+    measure: Callable[[float, Sequence[int]], Estimate],
+    search: Protocol3Search,
+    *,
+    seed: int,
+) -> dict[str, Any]:
+    """Every tier of a continuous fault by `search_tier`, each re-measured on the held-out
+    verification seeds: verified when R̃ there is within the tolerance or its CI covers the
+    level."""
+    tiers: dict[str, Any] = {}
+    for index, (name, level) in enumerate(LEVELS.items()):
+        severity, probes, converged = search_tier(
+            level, xs, monotone,
+            lambda s, p, index=index: measure(s, search_seeds(seed, search, index, p)),
+            search,
+        )  # fmt: skip
+        record: dict[str, Any] = {"level": level, "severity": _rounded(severity)}
+        if severity is not None:
+            check = measure(severity, verify_seeds(seed, search))
+            low, high = check.ci
+            verified = _on_target(check, level, search.tolerance) or low <= level <= high
+            record["verification"] = {**check.as_dict(), "verified": bool(verified)}
+            record["search"] = {"converged": converged, "probes": [p.as_dict() for p in probes]}
+        tiers[name] = record
+    return tiers
+
+
+# -- the comparison ------------------------------------------------------------------------------
 
 
 class World:
@@ -118,15 +226,9 @@ FAULTS = {"bimodal": Bimodal, "smooth": Smooth}
 
 def one_draw(kind, draw: int, *, seed: int, n_boot: int) -> dict[str, dict]:
     """Both protocols' tiers on one world: {protocol: {tier: (σ | None, verified), episodes}}."""
-    p3, p4 = TierSearchConfig(), CrnSearchConfig()
+    p3, p4 = Protocol3Search(), CrnSearchConfig()
     coarse_seeds = policy_seeds(seed, COARSE_EPISODES)
-    world = kind(
-        draw,
-        [
-            *reference_seeds(seed, COARSE_EPISODES, p3),
-            *crn_reference_seeds(seed, p4),
-        ],
-    )
+    world = kind(draw, [*coarse_seeds, *protocol3_seeds(seed, p3), *crn_reference_seeds(seed, p4)])
     reference = world.reference()
     grid = TiersConfig().grid
     clean = reference.returns(coarse_seeds)
@@ -135,11 +237,6 @@ def one_draw(kind, draw: int, *, seed: int, n_boot: int) -> dict[str, dict]:
         Returns(clean, faulty, reference.random), n_boot=n_boot, seed=seed, stepped=False
     )
     xs, ys = impact_curve_points(record)
-    coarse_tiers = {
-        n: None if isinstance(t["severity"], str) else t["severity"]
-        for n, t in record["tiers"].items()
-    }
-
     world.episodes = 0
 
     def measure(severity: float, seeds: Sequence[int]) -> Estimate:
@@ -148,7 +245,7 @@ def one_draw(kind, draw: int, *, seed: int, n_boot: int) -> dict[str, dict]:
             n_boot=n_boot, ci=0.95, seed=seed,
         )  # fmt: skip
 
-    tiers3 = searched_tiers(coarse_tiers, xs, ys, measure, p3, seed=seed, stepped=False)
+    tiers3 = searched_tiers(xs, ys, measure, p3, seed=seed)
     episodes3 = world.episodes
     world.episodes = 0
     result4 = search_fault(world, reference, seed=seed, config=p4, coarse=(xs, ys), n_boot=n_boot)

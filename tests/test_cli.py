@@ -27,7 +27,7 @@ def test_list_shows_every_component_kind():
             sections[current].append(line.split()[0])
     # The paper's eight (SPEC §5), then SPEC §20's: four on the policy view, fqe_td, riqn,
     # conformal_martingale, deedee and random_scores.
-    assert len(sections["detectors"]) == 17
+    assert len(sections["detectors"]) == 19
     assert len(sections["injectors"]) == 14  # the nine of SPEC §4 and five live observation faults
     assert {"matched_auroc", "vus_pr"} <= set(sections["metrics"])
     assert "LunarLander-v3" in sections["environments"]  # the suite adds more (SPEC §11)
@@ -64,20 +64,87 @@ def test_stage_verbs_refuse_unlisted_components(repo_root):
     [
         ([], "got none."),
         (["--injector", "stuck_actuator", "--eval", "e.zarr"], "got --eval with --injector."),
-        (["--sweep", "s.zarr"], "got --sweep."),
+        (["--injector", "stuck_actuator", "--id", "i.zarr"], "got --id with --injector."),
+        (["--eval", "e.zarr", "--sweep", "sweep"], "got --eval, --sweep."),
     ],
 )
-def test_score_refuses_sets_that_are_not_one_stage_in_one_line(repo_root, sets, given):
-    """A clean stage's sets (--eval, --calibration, --audit, --twins) or one injector's (--ood,
-    --sweep, --tiers)."""
-    args = ["score", "kde_density", "--model", "m.pkl", "--scores", "scores", *sets,
-            "--params", str(repo_root / "params.yaml")]  # fmt: skip
+def test_score_refuses_sets_that_are_not_one_stage_in_one_line(tmp_path, sets, given):
+    """A clean stage's sets (--id with --eval, --calibration, --audit, --twins) or the
+    injectors' (--ood, --sweep, --tiers)."""
+    args = ["score", "mahalanobis_distance", "--model", "m.pkl", "--scores", "scores", *sets,
+            "--params", str(_score_params(tmp_path))]  # fmt: skip
     result = runner.invoke(app, args)
     assert result.exit_code == 2
-    assert "score needs any of --eval (clean set), --calibration, --audit and --twins" in (
-        result.output
+    assert (
+        "score needs --id (ID set) with any of --eval (clean set), --calibration, --audit and "
+        "--twins" in result.output
     )
     assert given in result.output and result.output.count("\n") == 1
+
+
+def _score_params(folder):
+    """A params file listing mahalanobis_distance, whatever the repository's lists."""
+    path = folder / "params.yaml"
+    path.write_text(yaml.safe_dump({
+        "benchmark": {"detectors": ["mahalanobis_distance"], "injectors": ["stuck_actuator"]},
+        "detectors": {"mahalanobis_distance": {"features": "state", "ridge": 0.001,
+                                               "threshold_rule": "percentile",
+                                               "threshold_percentile": 99.0, "seed": 0}},
+        "anomaly": {"injectors": {"stuck_actuator": {}}},
+    }))  # fmt: skip
+    return path
+
+
+def _clean_set(n: int, T: int, seed: int):  # noqa: N803 - the protocol's name for the horizon
+    """n clean streams of T steps of a 3-dimensional state (a stored trajectory set)."""
+    import numpy as np
+
+    from oodrl.core.trajectory import TrajectorySet
+
+    rng = np.random.default_rng(seed)
+    states = rng.standard_normal((n, T + 1, 3)).astype(np.float32)
+    actions = rng.integers(0, 2, size=(n, T))
+    return TrajectorySet(
+        states=states[:, :-1], actions=actions, rewards=np.ones((n, T), np.float32),
+        next_states=states[:, 1:], dones=np.zeros((n, T), bool), executed_actions=actions,
+        episode_index=np.zeros((n, T), np.int64), seeds=np.arange(n, dtype=np.int64) + seed,
+        attrs={"T": T},
+    )  # fmt: skip
+
+
+def test_score_of_the_clean_sets_needs_and_scores_the_id_set(tmp_path, monkeypatch):
+    """SPEC §24: the clean stage scores the ID set (`data/id.zarr`, every stream) into
+    `scores/<detector>/id.zarr`, the clean group as the held-out sets', for the time-aware
+    rule's standardiser; without --id it refuses in one line, before scoring anything."""
+    from oodrl.config import load_params
+    from oodrl.io.layout import CLEAN_GROUP, id_score_store, score_store
+    from oodrl.io.store import read_scores, save_detector, write_trajectories
+    from oodrl.protocol.scoring import score_set
+
+    monkeypatch.chdir(tmp_path)  # the stage's timings land in ./.oodrl
+    params = _score_params(tmp_path)
+    name = "mahalanobis_distance"
+    id_set, eval_set = _clean_set(6, 40, 0), _clean_set(3, 40, 100)
+    write_trajectories(tmp_path / "id.zarr", id_set)
+    write_trajectories(tmp_path / "eval.zarr", eval_set)
+    detector = load_params(params, components=False).detector(name)
+    detector.fit(id_set.trajectories())
+    detector.calibrate(id_set.trajectories())
+    save_detector(tmp_path / "m.pkl", detector, name, {})
+    base = ["score", name, "--model", "m.pkl", "--scores", "scores", "--params", str(params)]
+    refused = runner.invoke(app, [*base, "--eval", "eval.zarr"])
+    assert refused.exit_code == 2 and refused.output.count("\n") == 1
+    assert "score of the clean sets needs --id (the ID set, data/id.zarr)" in refused.output
+    assert not (tmp_path / "scores").exists()
+    result = runner.invoke(app, [*base, "--id", "id.zarr", "--eval", "eval.zarr"])
+    assert result.exit_code == 0, result.output
+    groups, _ = read_scores(id_score_store(tmp_path / "scores", name))
+    assert id_score_store(tmp_path / "scores", name) == tmp_path / "scores" / name / "id.zarr"
+    expected = score_set(detector, name, id_set, "the ID set")
+    assert list(groups) == [CLEAN_GROUP]
+    assert groups[CLEAN_GROUP]["scores"].tobytes() == expected.tobytes()
+    assert groups[CLEAN_GROUP]["scores"].shape == (6, 40)  # every stream of the ID set
+    assert score_store(tmp_path / "scores", name).is_file()
 
 
 def test_train_policy_never_trains_unasked(tmp_path, repo_root, monkeypatch):

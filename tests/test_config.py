@@ -128,6 +128,41 @@ BAD = [
         "tiers.episodes: the random policy's impact episodes",
     ),
     (
+        "tier search episodes overflow their seed block",
+        _set("tiers.search.search_episodes", 50_001),
+        "tiers.search.search_episodes: Input should be less than or equal to 50000",
+    ),
+    (
+        "tier verification overflows its seed block",
+        _set("tiers.search.verify_batch", 10_000),
+        "tiers.search.verify_batch: max_verify_batches 6 × verify_batch 10000 = 60000 "
+        "verification seeds overflow their block of 50000 (from seed + 950000). Allowed: "
+        "max_verify_batches × verify_batch <= 50000.",
+    ),
+    (
+        "fewer verification batches than tiers",
+        _set("tiers.search.max_verify_batches", 3),
+        "tiers.search.max_verify_batches: 3 batches cannot verify each of the 4 tiers once. "
+        "Allowed: 4 or more.",
+    ),
+    (
+        "tier search budget below its probes",
+        _set("tiers.search.budget", 700),
+        "tiers.search.budget: 700 is below 800, the most probes (max_probes 6 × search_episodes "
+        "100) and one verification batch of 50 for each of 4 tiers. Allowed: 800 or more.",
+    ),
+    (
+        "protocol 3's tier search key",
+        _set("tiers.search.probe_episodes", 50),
+        "tiers.search.probe_episodes: unknown key.",
+    ),
+    (
+        "audit streams on the tier search's seeds",
+        _set("tiers.audit_seed_offset", 950_100),
+        "tiers.audit_seed_offset: the audit streams (seeds seed + 950100..950299) overlap the "
+        "tier verification's episodes",
+    ),
+    (
         "episode_max without the held-out streams",
         _set("detectors.cusum.threshold_rule", "episode_max"),
         "detectors.cusum.alpha: threshold_rule episode_max at alpha=0.05 needs at least 19",
@@ -254,6 +289,16 @@ def test_check_params_cli_exit_codes(tmp_path, default_params):
     result = runner.invoke(app, ["check-params", str(bad)])
     assert result.exit_code == 2
     assert result.output.count("\n") == 1 and "anomaly.severity" in result.output
+
+
+def test_check_params_refuses_a_tier_search_that_overflows_its_seeds(tmp_path, default_params):
+    """Exit 2 and one line naming the key, before any stage runs (SPEC §22)."""
+    default_params["tiers"]["search"].update(verify_batch=2_000, max_verify_batches=30)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(default_params))
+    result = CliRunner().invoke(app, ["check-params", str(bad)])
+    assert result.exit_code == 2
+    assert result.output.count("\n") == 1 and "tiers.search.verify_batch: " in result.output
 
 
 def test_episode_max_alpha_the_message_allows_passes(default_params):

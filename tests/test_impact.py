@@ -1,9 +1,12 @@
 """Impact calibration on a toy environment whose impact is known in closed form."""
 
+import json
+
 import gymnasium as gym
 import numpy as np
 import pytest
 
+from oodrl.config import TierSearchConfig
 from oodrl.core.adapter import EnvironmentAdapter, SimulatorHandle
 from oodrl.errors import ContractError
 from oodrl.injectors.online import DynamicsScaling
@@ -14,16 +17,20 @@ from oodrl.protocol.impact import (
     LEVELS,
     UNREACHABLE,
     Returns,
-    calibrate_impact,
     impact_record,
     impact_text,
     minimum_detectable_impact,
 )
+from oodrl.protocol.tier_search import calibrate_impact
 from oodrl.report.impact import impact_table, plot_impact_curves
 from oodrl.testing.pipeline import TINY_TIERS
 
 ENV_ID, LENGTH, DRIFT, COST = "OodrlToyDrift-v0", 10, 0.1, 0.3
 GRID = [0.2, 0.4, 0.6, 0.8, 1.0]
+#: The tier search on 8 common episodes and batches of 8 (π is deterministic here: every
+#: episode is the same, so more would measure nothing more).
+SEARCH = TierSearchConfig(search_episodes=8, verify_batch=8)
+INJECTORS = {"strong": DynamicsScaling(gain=1.5), "weak": DynamicsScaling(gain=0.5)}
 
 
 class ToyDrift(gym.Env):
@@ -83,10 +90,15 @@ def closed_form_return(gain: float, severity: float) -> float:
     return LENGTH - COST * (4.5 * (1 + gain * severity) + 1)
 
 
+def _calibrate(**kwargs):
+    return calibrate_impact(
+        ToyAdapter(), AlwaysOne(), INJECTORS, GRID, 16, n_boot=200, search=SEARCH, **kwargs
+    )
+
+
 @pytest.fixture(scope="module")
 def document():
-    injectors = {"strong": DynamicsScaling(gain=1.5), "weak": DynamicsScaling(gain=0.5)}
-    return calibrate_impact(ToyAdapter(), AlwaysOne(), injectors, GRID, 16, n_boot=200)
+    return _calibrate()
 
 
 def test_the_impact_curve_is_the_closed_form(document):
@@ -104,27 +116,38 @@ def test_the_impact_curve_is_the_closed_form(document):
 
 
 def test_tiers_are_measured_where_they_are_read_and_verified(document):
-    """The search reports a probed severity whose R̃ (exact here: π is deterministic) is within
-    the tolerance of the level, and the verification re-measures it there."""
+    """Every probe of the search measures R̃ (exact here: π is deterministic and R̃ linear in
+    σ) where it reports it; each tier is read on the fit of the probes where R̃ is its level,
+    and the verification re-measures it there on fresh episodes, with its CI."""
     clean, random = document["clean_return"], document["random_return"]
-    tolerance = document["search"]["tolerance"]
     for fault, gain in (("strong", 1.5), ("weak", 0.5)):
-        tiers = document["faults"][fault]["tiers"]
+        record = document["faults"][fault]
+
+        def closed_form(severity, gain=gain):
+            # R̃(σ) = 1 − 0.3·4.5·gain·σ / (R_clean − R_rand): linear in σ.
+            return 1 - COST * 4.5 * gain * severity / (clean - random)
+
+        search = record["tier_search"]
+        assert search["method"] == "common random numbers"
+        assert 1 <= len(search["probes"]) <= SEARCH.max_probes
+        for probe in search["probes"]:
+            assert probe["normalised"] == pytest.approx(closed_form(probe["severity"]), abs=1e-5)
+            assert probe["episodes"] == SEARCH.search_episodes
+        assert search["episodes"]["total"] <= SEARCH.budget
         reached = []
         for name, level in LEVELS.items():
-            # R̃(σ) = 1 − 0.3·4.5·gain·σ / (R_clean − R_rand): linear in σ.
             crossing = (1 - level) * (clean - random) / (COST * 4.5 * gain)
-            tier = tiers[name]
+            tier = record["tiers"][name]
             if crossing > GRID[-1]:
                 assert tier["severity"] == UNREACHABLE and "verification" not in tier
+                assert GRID[-1] in [p["severity"] for p in search["probes"]]
                 continue
-            closed_form = 1 - COST * 4.5 * gain * tier["severity"] / (clean - random)
-            assert abs(closed_form - level) <= tolerance
-            probe = tier["search"]["probes"][-1]
-            assert probe["severity"] == tier["severity"] and tier["search"]["converged"]
-            assert probe["normalised"] == pytest.approx(closed_form, abs=1e-5)
-            assert tier["verification"]["normalised"] == pytest.approx(closed_form, abs=1e-5)
-            assert tier["verification"]["verified"] is True
+            assert closed_form(tier["severity"]) == pytest.approx(level, abs=1e-5)
+            check = tier["verification"]
+            assert check["normalised"] == pytest.approx(closed_form(tier["severity"]), abs=1e-5)
+            assert check["ci"][0] <= check["normalised"] <= check["ci"][1]
+            assert check["episodes"] == SEARCH.verify_batch * check["batches"]
+            assert check["verified"] is True
             reached.append(tier["severity"])
         assert reached == sorted(reached)
     assert document["faults"]["weak"]["tiers"]["severe"]["severity"] == UNREACHABLE
@@ -132,18 +155,38 @@ def test_tiers_are_measured_where_they_are_read_and_verified(document):
 
 
 def test_the_document_is_deterministic_and_renders(document, tmp_path):
-    injectors = {"strong": DynamicsScaling(gain=1.5), "weak": DynamicsScaling(gain=0.5)}
-    again = calibrate_impact(ToyAdapter(), AlwaysOne(), injectors, GRID, 16, n_boot=200)
-    assert yamlio.dump(again) == yamlio.dump(document)
+    assert yamlio.dump(_calibrate()) == yamlio.dump(document)
+    blocks = SEARCH.max_verify_batches * SEARCH.verify_batch  # every batch a fault may spend
     assert document["seeds"] == {
         "policy": [500000, 500015],
         "random": [600000, 600015],
-        "search": [700000, 700000 + 4 * 4 * 50 - 1],  # 4 tiers × 4 probes × 50 episodes
-        "verification": [800000, 800099],
+        "search": [900000, 900000 + SEARCH.search_episodes - 1],
+        "verification": [950000, 950000 + blocks - 1],
     }
+    assert document["search"] == {**SEARCH.model_dump(), "max_severity": GRID[-1]}
     table = impact_table(document)
-    assert "| weak" in table and UNREACHABLE in table
+    assert "| weak" in table and UNREACHABLE in table and f"n = {SEARCH.verify_batch}" in table
     assert plot_impact_curves(document, tmp_path / "impact.png").stat().st_size > 0
+
+
+def test_the_document_holds_plain_values_only(document):
+    """Impact records are copied into JSON files (tier results, the leaderboard): no tuple,
+    numpy scalar or NaN anywhere."""
+    assert json.loads(json.dumps(document, allow_nan=False)) == document
+
+
+def test_a_reference_without_the_search_seeds_is_refused():
+    """A reference measured for other tier-search params lacks seeds this search reads."""
+    from oodrl.protocol.impact import episode_limit
+    from oodrl.protocol.tier_search import measure_reference
+
+    adapter = ToyAdapter()
+    other = TierSearchConfig(search_episodes=8, verify_batch=4)
+    reference = measure_reference(
+        adapter, AlwaysOne(), 16, other, seed=0, horizon=episode_limit(adapter)
+    )
+    with pytest.raises(ContractError, match="impact_reference"):
+        _calibrate(reference=reference)
 
 
 def test_a_noisy_non_monotone_curve_is_fitted_monotone_before_reading_tiers():
@@ -213,24 +256,37 @@ def test_an_mdi_at_the_first_tier_prints_as_a_bound():
     assert stepped == {AT_MOST: pytest.approx(0.03)}
 
 
-def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
+def test_the_impact_commands_write_deterministic_outputs_and_refuse_a_bad_grid(
     tmp_path, repo_root, monkeypatch
 ):
+    """impact-reference measures π's clean returns on every seed the impact stage reads (the
+    coarse curve's, the tier search's, every verification batch's); impact reuses them."""
     from typer.testing import CliRunner
 
     from oodrl.cli import app
+    from oodrl.config import parse_params
+    from oodrl.protocol.tier_search import reference_seeds
+    from oodrl.stages.impact import read_reference
 
     monkeypatch.chdir(tmp_path)
     params = yamlio.load((repo_root / "params.yaml").read_text())
-    params["tiers"].update(TINY_TIERS)  # a two-probe search on a few episodes
+    params["tiers"].update({**TINY_TIERS, "episodes": 3})  # a two-probe search on a few episodes
     (tmp_path / "params.yaml").write_text(yamlio.dump(params))
     policy = str(repo_root / "models" / "policy.pt")
+    result = CliRunner().invoke(
+        app, ["impact-reference", "--policy", policy, "--out", "reference.yaml"]
+    )
+    assert result.exit_code == 0, result.output
+    reference = read_reference(tmp_path / "reference.yaml")
+    tiers = parse_params(params, components=False).tiers
+    assert reference["clean"]["seeds"] == sorted(reference_seeds(0, 3, tiers.search))
+    assert len(reference["clean"]["seeds"]) == 3 + 2 + 4 * 2 and len(reference["random"]) == 3
 
     def impact(name: str, *extra: str):
         return CliRunner().invoke(
             app,
             ["impact", "gaussian_state_noise", "--policy", policy, "--out", f"{name}.yaml",
-             "--episodes", "3", *extra],
+             "--reference", "reference.yaml", "--episodes", "3", *extra],
         )  # fmt: skip
 
     for name in ("first", "second"):
@@ -242,6 +298,11 @@ def test_the_impact_command_writes_deterministic_outputs_and_refuses_a_bad_grid(
     # The post-hoc observation fault was calibrated live, with running statistics (no --id).
     assert document["faults"]["gaussian_state_noise"]["mode"] == "online"
     assert document["seeds"]["policy"] == [500000, 500002]
+    search = document["faults"]["gaussian_state_noise"]["tier_search"]
+    tiny = TINY_TIERS["search"]
+    assert 1 <= len(search["probes"]) <= tiny["max_probes"]
+    assert search["episodes"]["search"] == len(search["probes"]) * tiny["search_episodes"]
+    assert search["episodes"]["verification"] <= tiny["max_verify_batches"] * tiny["verify_batch"]
     assert "gaussian_state_noise" in impact_table(document)
     bad = impact("bad", "--grid", "0.5,0.2")
     assert bad.exit_code == 2 and "--grid must be increasing" in bad.output
@@ -322,12 +383,17 @@ def test_a_stepped_fault_is_measured_once_per_step():
     from oodrl.injectors.live_observation import LiveObservationDelay
 
     injectors = {"delay": LiveObservationDelay(max_delay=3)}
-    document = calibrate_impact(ToyAdapter(), AlwaysOne(), injectors, GRID, 4, n_boot=20)
+    document = calibrate_impact(
+        ToyAdapter(), AlwaysOne(), injectors, GRID, 4, n_boot=20, search=SEARCH
+    )
     record = document["faults"]["delay"]
     assert record["severity_steps"] == 3
     assert [p["severity"] for p in record["curve"]] == pytest.approx([1 / 6, 0.5, 5 / 6])
     # The always-1 policy never reads its observation: a delayed sensor costs it nothing.
     assert all(t["severity"] == UNREACHABLE for t in record["tiers"].values())
+    # Its tiers are steps: nothing searched, nothing to verify.
+    assert record["tier_search"]["method"] == "steps" and "probes" not in record["tier_search"]
+    assert record["tier_search"]["episodes"]["total"] == 0
 
 
 def test_minimum_detectable_impact_of_a_stepped_fault_is_its_steps_impact():

@@ -38,6 +38,13 @@ def archived(repo_root, tmp_path_factory) -> Path:
     return folder
 
 
+@pytest.fixture(autouse=True)
+def _target_is_the_archived_version(archived, monkeypatch) -> None:
+    """The archive's sources and locks are one commit's: its code's protocol is the version its
+    results were built at (between two versions, main's code targets the next one)."""
+    monkeypatch.setattr(stamp, "PROTOCOL_VERSION", migration.built_version(archived / PROJECT))
+
+
 @pytest.fixture
 def repo(archived, tmp_path) -> Path:
     copy = tmp_path / "repo"

@@ -125,7 +125,7 @@ def test_the_protocol_runs_on_every_environment(env_id, tmp_path: Path):
         fit.fit_detector(params, detector, tmp_path / "id.zarr", model)
         score.score_clean_sets(detector, model, scores, tmp_path / "eval.zarr", {})
         for injector in scored:
-            headline, sweep = (tmp_path / kind / f"{injector}.zarr" for kind in ("ood", "sweep"))
+            headline, sweep = tmp_path / "ood", tmp_path / "sweep"
             score.score_injector_sets(detector, injector, model, scores, headline, sweep, None)
     # The metrics stage on the scored injectors (it reads the sets of every injector it is given).
     results = compute_results(

@@ -5,9 +5,10 @@ locally and pushes nothing (the served directory's files stay as they were).
 
 The repository is the suite's shape at its smallest (as tests/hostile/test_suite_run_hostile.py):
 the root's DVC project, one pipeline's (pipeline/a, with a params knob) and the leaderboard's
-(pipeline/suite). The root has the shape of its impact stages: two stages each writing one file
-of data/impact, and a stage reading the directory, which `dvc repro --pull --allow-missing`
-gets wrong on a fresh clone (the last test)."""
+(pipeline/suite). The root has the shape of protocol 3's impact stages: two stages each writing
+one file of data/impact, and a stage reading the directory, which `dvc repro --pull
+--allow-missing` gets wrong on a fresh clone (the last tests); `published_as_oodrl` has
+protocol 4's, the reading stage naming each file."""
 
 from __future__ import annotations
 
@@ -46,6 +47,10 @@ ROOT = f"""\
     outs:
       - reports/results.yaml
 """
+#: The root as protocol 4 has it: every dep names one stage's output.
+ROOT_BY_FILE = ROOT.replace(
+    "      - data/impact\n", "      - data/impact/x.yaml\n      - data/impact/y.yaml\n"
+)
 PIPELINE = f"""\
   build:
     cmd: {json.dumps(f"mkdir -p reports && echo pipeline a > reports/results.yaml && {STAMP}")}
@@ -76,25 +81,21 @@ def _listing(directory: Path) -> dict[str, bytes]:
 def published(tmp_path_factory) -> tuple[Path, Path]:
     """A lab's checkout, built by `oodrl suite run` with a directory remote and committed, and
     that remote (every output and run-cache entry pushed)."""
-    return _publish(tmp_path_factory.mktemp("published"), ignored="")
+    return _publish(tmp_path_factory.mktemp("published"))
 
 
 @pytest.fixture(scope="module")
 def published_as_oodrl(tmp_path_factory) -> tuple[Path, Path]:
-    """`published`, its root's data/impact ignored whole, as `oodrl pipeline write` ignores the
-    directories several stages fill (FILLED_DIRS_IGNORED): DVC writes no .gitignore inside it,
-    whose entry in the directory's DVC hash oodrl.suite.migration does not count (it finds the
-    root stale on `published`: "tiers: data/impact changed")."""
-    from oodrl.suite.pipeline import FILLED_DIRS_IGNORED
-
-    return _publish(tmp_path_factory.mktemp("published-as-oodrl"), ignored=FILLED_DIRS_IGNORED)
+    """`published` in protocol 4's shape (SPEC §23): `tiers` reads each file of data/impact, one
+    stage's output each, never the directory (whose DVC hash would count the .gitignore DVC
+    writes inside it: oodrl.suite.migration finds the root stale on `published`, "tiers:
+    data/impact changed")."""
+    return _publish(tmp_path_factory.mktemp("published-as-oodrl"), root=ROOT_BY_FILE)
 
 
-def _publish(lab: Path, ignored: str) -> tuple[Path, Path]:
+def _publish(lab: Path, root: str = ROOT) -> tuple[Path, Path]:
     repo, remote = lab / "repo", lab / "remote"
-    dvc_project(repo, None, ROOT)
-    if ignored:
-        (repo / ".gitignore").write_text(ignored)
+    dvc_project(repo, None, root)
     dvc_project(repo / "pipeline" / "a", "../../../.dvc/cache", PIPELINE)
     (repo / "pipeline" / "a" / "params.yaml").write_text("knob: 1\n")
     dvc_project(repo / "pipeline" / "suite", "../../../.dvc/cache", LEADERBOARD)

@@ -47,7 +47,7 @@ def test_builtin_registries_list_the_protocol_components():
     from oodrl.envs import ENVIRONMENTS
     from oodrl.injectors import INJECTORS
 
-    assert len(DETECTORS.names()) == 17  # the eight of SPEC §5 and nine of §20
+    assert len(DETECTORS.names()) == 19  # the eight of SPEC §5, nine of §20 and two of §24
     assert len(INJECTORS.names()) == 14  # the nine of SPEC §4 and five live observation faults
     assert "LunarLander-v3" in ENVIRONMENTS
 

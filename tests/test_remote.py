@@ -117,13 +117,13 @@ def test_a_fresh_clone_pulls_and_a_second_machine_restores(built, remote, tmp_pa
     # in the remote's run-cache and restored, and the locks come out as the build wrote them.
     # Run again: the stages DVC cannot cache (persistent outputs), and those with git-tracked
     # (`cache: false`) outputs, which `dvc push --run-cache` does not carry (oodrl suite run
-    # does): metrics, tier_metrics and render (SPEC §21).
+    # does): metrics, tier_metrics and render (SPEC §21), and the impact records (SPEC §23).
     second = tmp_path / "second"
     run(tmp_path, "git", "clone", "-q", str(repo), str(second))
     run(second, "git", "-c", "advice.detachedHead=false", "checkout", "-q", "HEAD~1")
     configure(second / PROJECT, remote)
     done = run(second / PROJECT, "dvc", "repro", "--pull", env=code_env(second))
-    uncached = {"metrics", "tier_metrics", "render"}
+    uncached = {"metrics", "tier_metrics", "render", "impact_reference", "impact@stuck_actuator"}
     assert set(ran_stages(done.stdout)) <= {"check_params", "train_policy", *uncached}
     assert len(built_ran) > 10 and done.stdout.count("is cached - skipping run") >= 10
     project_locks = {k: v for k, v in locks(repo).items() if k.startswith(PROJECT)}

@@ -19,6 +19,8 @@ from oodrl.suite.pipeline import POLICY, Project, pipeline_dirs, policy_file, re
 
 POLICY_VIEW = ["q_margin", "q_entropy", "q_energy", "max_softmax"]
 EVERYWHERE = ["fqe_td", "riqn", "conformal_martingale", "deedee", "random_scores"]
+#: SPEC §24's sequential baselines (protocol 4), in every environment's list too.
+SEQUENTIAL = ["cusum_tv", "action_consistency"]
 PAPER = [
     "mahalanobis_distance",
     "time_series_features",
@@ -47,14 +49,14 @@ def _fit_deps(root: Path, directory: Path, detector: str) -> list[str]:
 
 def test_every_environment_runs_the_new_detectors_its_policy_supports(repo_root):
     suite = _detectors(repo_root / "pipeline")
-    assert suite[-9:] == POLICY_VIEW + EVERYWHERE
+    assert suite[-11:] == POLICY_VIEW + EVERYWHERE + SEQUENTIAL
     environments = _environments(repo_root)
     assert len(environments) == 21  # 7 environments, 3 policies each
     value_heads = 0
     for directory in environments:
         detectors = _detectors(directory)
         params = read_params_data(directory / "params.yaml")
-        for name in POLICY_VIEW + EVERYWHERE:
+        for name in POLICY_VIEW + EVERYWHERE + SEQUENTIAL:
             assert name in params["detectors"], f"{directory.name}: no detectors.{name} block"
         # The committed policy decides, in the detectors' own words.
         policy = load_policy(str(directory / POLICY))
@@ -65,12 +67,12 @@ def test_every_environment_runs_the_new_detectors_its_policy_supports(repo_root)
     assert value_heads == 9  # LunarLander, CartPole and Acrobot: three policies each
 
 
-@pytest.mark.parametrize("name", POLICY_VIEW + EVERYWHERE)
+@pytest.mark.parametrize("name", POLICY_VIEW + EVERYWHERE + SEQUENTIAL)
 def test_a_fit_stage_depends_on_the_policy_exactly_when_its_detector_reads_it(repo_root, name):
     """fqe_td reads the policy too (π(s′) of its targets): its fit depends on the file."""
     directory = repo_root / LUNAR_LANDER
     reads = issubclass(DETECTORS.get(name), PolicyDetector)
-    assert reads == (name in POLICY_VIEW or name == "fqe_td")
+    assert reads == (name in POLICY_VIEW or name in ("fqe_td", "action_consistency"))
     deps = _fit_deps(repo_root, directory, name)
     assert (POLICY in deps) == reads
     assert deps[-1] == (POLICY if reads else "data/id.zarr")

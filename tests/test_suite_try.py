@@ -151,7 +151,9 @@ def test_try_runs_only_the_detectors_stages_and_prints_its_ranks(built_suite):
         "check_params",  # the suite's params changed: checked again, its stamp unchanged
         "detectors/hbos/dvc.yaml:fit",
         "detectors/hbos/dvc.yaml:score_clean",
-        "detectors/hbos/dvc.yaml:score@stuck_actuator",
+        "detectors/hbos/dvc.yaml:score",
+        "detectors/hbos/dvc.yaml:score_variants",
+        "detectors/hbos/dvc.yaml:cells",
         "metrics",
         "tier_metrics",
     }, ran  # no collect, impact, train_policy or render stage, nothing of the other detector

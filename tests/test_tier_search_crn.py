@@ -7,14 +7,16 @@ random numbers hold."""
 from __future__ import annotations
 
 import functools
+import json
 from collections.abc import Sequence
 
 import numpy as np
 import pytest
 
-from oodrl.config import TierSearchConfig
+from oodrl import config as seeds_config
+from oodrl.config import CRN_VERIFY_SEED_OFFSET, TierSearchConfig
 from oodrl.errors import ConfigError, ContractError
-from oodrl.protocol.impact import LEVELS, Estimate, Reference, reference_seeds, tier_tolerance
+from oodrl.protocol.impact import LEVELS, Estimate, Reference, tier_tolerance
 from oodrl.protocol.tier_search import (
     CrnSearchConfig,
     ci_meets_level,
@@ -22,6 +24,7 @@ from oodrl.protocol.tier_search import (
     crn_search_seeds,
     crn_verify_seeds,
     search_fault,
+    verify_steps,
 )
 
 N_BOOT = 400
@@ -167,20 +170,53 @@ def test_every_probe_shares_the_search_seeds_and_verification_never_does():
     assert sum(map(len, per_tier)) == len(set().union(*per_tier))  # no tier shares a seed
 
 
-def test_seed_streams_are_disjoint_from_each_other_and_protocol_3():
-    config = CrnSearchConfig()
-    for seed in (0, 7, 123_456):
-        search = set(crn_search_seeds(seed, config))
-        verify = [
-            set(crn_verify_seeds(seed, config, i, b))
-            for i in range(len(LEVELS))
-            for b in range(config.max_verify_batches)
-        ]
-        every_verify = set().union(*verify)
-        assert len(every_verify) == sum(map(len, verify))
-        assert search.isdisjoint(every_verify)
-        protocol3 = set(reference_seeds(seed, 30, TierSearchConfig()))
-        assert protocol3.isdisjoint(search | every_verify)
+def test_seed_streams_are_disjoint_from_each_other_and_every_other_block():
+    """The search's and the verification's seeds are disjoint, and clear of every other block of
+    `oodrl.config` (100,000 seeds each: the policy's, the random policy's, protocol 3's), also
+    at the largest sizes the blocks allow."""
+    largest = TierSearchConfig(
+        search_episodes=50_000, verify_batch=2_500, max_verify_batches=5, budget=400_000
+    )
+    largest.check_seed_blocks(len(LEVELS))
+    others = [
+        value
+        for name, value in vars(seeds_config).items()
+        if name.endswith("_SEED_OFFSET") and not name.startswith("CRN_")
+    ]
+    assert len(others) == 4
+    for config in (CrnSearchConfig(), largest):
+        for seed in (0, 7, 123_456):
+            search = set(crn_search_seeds(seed, config))
+            verify = [
+                set(crn_verify_seeds(seed, config, b)) for b in range(config.max_verify_batches)
+            ]
+            every_verify = set().union(*verify)
+            assert len(every_verify) == sum(map(len, verify))
+            assert search.isdisjoint(every_verify)
+            crn = search | every_verify
+            assert len(crn_reference_seeds(seed, config)) == len(crn)
+            assert min(crn) == seed + 900_000 and max(crn) < seed + 1_000_000
+            for offset in others:
+                assert crn.isdisjoint(range(seed + offset, seed + offset + 100_000))
+
+
+@pytest.mark.parametrize(
+    ("settings", "key"),
+    [
+        ({"verify_batch": 10_000, "max_verify_batches": 6}, "tiers.search.verify_batch"),
+        ({"max_verify_batches": 3}, "tiers.search.max_verify_batches"),
+        ({"max_probes": 8}, "tiers.search.budget"),
+    ],
+)
+def test_sizes_that_overflow_a_seed_block_or_the_budget_are_refused(settings, key):
+    """One line naming the params key and what it allows, before anything is measured."""
+    config = CrnSearchConfig(**settings)
+    fault = Smooth(0, [])
+    with pytest.raises(ConfigError) as info:
+        search_fault(fault, fault.reference(), seed=0, config=config)
+    text = str(info.value)
+    assert text.startswith(f"{key}: ") and "Allowed: " in text and "\n" not in text
+    assert fault.calls == []
 
 
 @pytest.mark.parametrize("kind", [Smooth, Bimodal])
@@ -242,7 +278,7 @@ class Drifted(Smooth):
     shift = 0.0
 
     def loss(self, severity: float, seed: int) -> float:
-        fresh = seed - 950_000 >= 0
+        fresh = seed >= CRN_VERIFY_SEED_OFFSET
         return super().loss(severity, seed) + (GAP * self.shift if fresh and severity else 0.0)
 
 
@@ -289,3 +325,63 @@ def test_a_level_not_reached_when_the_probes_run_out_is_not_called_unreachable()
     assert severe.severity is None and not severe.resolved and not severe.unreachable
     record = result.as_dict()["tiers"]["severe"]
     assert record["severity"] == "not reached" and record["search"]["bracket"][1] is None
+
+
+def test_the_record_holds_plain_values_and_every_probe():
+    """The record may be copied into JSON files: plain values only; every probe (σ, R̃ with its
+    CI, episodes) and the fit of them are there, and each tier's precision is its verification's
+    CI (SPEC §23)."""
+    _, result = run(Bimodal, 1)
+    record = result.as_dict()
+    assert json.loads(json.dumps(record)) == record  # no tuple, numpy scalar or NaN
+    assert record["method"] == "common random numbers"
+    assert [p["severity"] for p in record["probes"]] == [p.severity for p in result.probes]
+    assert len(record["fit"]) == len(result.probes) + 1 and record["fit"][0]["severity"] == 0.0
+    mild = record["tiers"]["mild"]
+    assert set(mild) == {"level", "severity", "search", "verification"}
+    check = mild["verification"]
+    assert check["ci"][0] <= check["normalised"] <= check["ci"][1]
+    assert check["episodes"] == 50 * check["batches"]
+    assert check["half_width"] == pytest.approx((check["ci"][1] - check["ci"][0]) / 2, abs=1e-6)
+    # Batches are numbered over the fault: the first goes to the first tier with a severity.
+    first = min(batches[0][0] for batches in record["seeds"]["verification"].values())
+    assert first == CRN_VERIFY_SEED_OFFSET
+
+
+class Steps(World):
+    """A stepped fault of 4 steps, R̃ at step k's midpoint (k − ½)/4 from `STEPS`."""
+
+    STEPS = {0.125: 0.97, 0.375: 0.85, 0.625: 0.60, 0.875: 0.30}
+
+    def true(self, severity: float) -> float:
+        return self.STEPS[severity]
+
+    def loss(self, severity: float, seed: int) -> float:
+        _, z, _ = _latents(self.world, seed)
+        return GAP * (1 - self.true(severity)) * (1 + 0.2 * z)
+
+
+def test_a_stepped_fault_is_verified_on_its_band_without_a_search():
+    """Each tier a step lands in (benign at 0.125, moderate at 0.375, severe at 0.625) is
+    verified on fresh batches against its band [next level, level]: no probe, no fit."""
+    config = CrnSearchConfig()
+    fault = Steps(0, crn_reference_seeds(0, config))
+    severities = {"benign": 0.125, "mild": None, "moderate": 0.375, "severe": 0.625}
+    result = verify_steps(fault, fault.reference(), severities, seed=0, n_boot=N_BOOT)
+    assert result.probes == [] and result.search_episodes == 0
+    assert {n: t.verified for n, t in result.tiers.items()} == {
+        "benign": True,  # R̃ 0.97 in [0.95, 0.99]
+        "mild": False,  # no step: not measured
+        "moderate": True,  # 0.85 in [0.75, 0.90]
+        "severe": True,  # 0.60 in [0.5, 0.75]
+    }
+    assert result.tiers["mild"].verification is None
+    used = {s for _, seeds in fault.calls for s in seeds}
+    assert used.isdisjoint(crn_search_seeds(0, config)) and result.episodes == len(used) <= 900
+    record = result.as_dict()
+    assert record["method"] == "steps" and "probes" not in record
+    assert record["tiers"]["mild"] == {"level": 0.95, "severity": "unreachable"}
+    assert "search" not in record["tiers"]["benign"]
+    # A step read as the wrong tier misses its band: R̃ 0.85 is below mild's [0.90, 0.95].
+    wrong = verify_steps(fault, fault.reference(), {"mild": 0.375}, seed=0, n_boot=N_BOOT)
+    assert wrong.tiers["mild"].verified is False

@@ -571,79 +571,119 @@ def score(
     detector: Annotated[str, typer.Argument()],
     model: Annotated[Path, PathOption()],
     scores: Annotated[Path, PathOption(help="the scores directory: a store per set in it")],
-    injector: Annotated[str | None, typer.Option(help="score this injector's sets")] = None,
+    injector: Annotated[
+        list[str] | None,
+        typer.Option(help="score only this injector's sets (repeatable; default: every one)"),
+    ] = None,
+    id: Annotated[Path | None, PathOption()] = None,  # noqa: A002 - the option is --id
     eval: Annotated[Path | None, PathOption()] = None,  # noqa: A002 - the option is --eval
     calibration: Annotated[Path | None, PathOption()] = None,
     audit: Annotated[Path | None, PathOption()] = None,
     twins: Annotated[Path | None, PathOption()] = None,
-    ood: Annotated[Path | None, PathOption()] = None,
-    sweep: Annotated[Path | None, PathOption()] = None,
-    tiers: Annotated[Path | None, PathOption()] = None,
+    ood: Annotated[Path | None, PathOption(help="directory of the headline sets")] = None,
+    sweep: Annotated[Path | None, PathOption(help="directory of the sweeps")] = None,
+    tiers: Annotated[Path | None, PathOption(help="directory of the tier streams")] = None,
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Stages score_clean and score: one detector on the clean sets (--eval, the evaluation set;
-    --calibration, --audit, --twins, the held-out clean streams), or on one injector's sets
-    (--injector with --ood, its headline set; --sweep, its sweep; --tiers, its tier streams);
-    one store per set."""
+    """Stages score_clean, score and score_variants: one detector on the clean sets (--id, the
+    ID set, whose scores the time-aware rule standardises by, always; with any of --eval, the
+    evaluation set, and --calibration, --audit, --twins, the held-out clean streams), or on the
+    injectors' sets, `<injector>.zarr` in each directory given (--ood, the headline sets: stage
+    score; --sweep, the sweeps, and --tiers, the tier streams: stage score_variants), for every
+    benchmark injector or each --injector; one store per set."""
     from oodrl.io.layout import detector_stage
     from oodrl.stages import score as stages
 
     config = _load(params)
     _known(detector, config.benchmark.detectors, "benchmark.detectors")
-    clean = {"--eval": eval, "--calibration": calibration, "--audit": audit, "--twins": twins}
+    clean = {"--id": id, "--eval": eval, "--calibration": calibration, "--audit": audit,
+             "--twins": twins}  # fmt: skip
     faulty = {"--ood": ood, "--sweep": sweep, "--tiers": tiers}
-    wanted, unwanted = (clean, faulty) if injector is None else (faulty, clean)
-    if not any(wanted.values()) or any(unwanted.values()):
-        given = [option for option, path in {**clean, **faulty}.items() if path is not None]
+    given = [option for option, path in {**clean, **faulty}.items() if path is not None]
+    if any(clean.values()) == any(faulty.values()) or (injector and any(clean.values())):
         raise ConfigError(
-            f"score needs any of --eval (clean set), --calibration, --audit and --twins (held-out "
-            f"clean streams), or "
-            f"--injector with any of --ood (headline set), --sweep (sweep sets) and --tiers "
-            f"(tier sets); got {', '.join(given) or 'none'}"
-            f"{' with --injector' if injector is not None else ''}."
+            f"score needs --id (ID set) with any of --eval (clean set), --calibration, --audit "
+            f"and --twins (held-out clean streams), or any of --ood (headline sets), --sweep "
+            f"(sweeps) and --tiers (tier streams), directories, with --injector optional; got "
+            f"{', '.join(given) or 'none'}{' with --injector' if injector else ''}."
         )
-    if injector is None:
+    if any(clean.values()):
+        if id is None:
+            raise ConfigError(
+                "score of the clean sets needs --id (the ID set, data/id.zarr): the time-aware "
+                "rule standardises each step by its scores there (SPEC §24)."
+            )
         with _stage(detector_stage(detector, "score_clean")):
             heldout = {"calibration": calibration, "audit": audit, "twins": twins}
-            stages.score_clean_sets(detector, model, scores, eval, heldout)
+            stages.score_clean_sets(detector, model, scores, eval, heldout, id_path=id)
         return
-    _known(injector, config.benchmark.injectors, "benchmark.injectors")
-    with _stage(detector_stage(detector, "score", injector)):
-        stages.score_injector_sets(detector, injector, model, scores, ood, sweep, tiers)
+    for each in injector or ():
+        _known(each, config.benchmark.injectors, "benchmark.injectors")
+    with _stage(detector_stage(detector, "score" if ood is not None else "score_variants")):
+        for each in injector or config.benchmark.injectors:
+            stages.score_injector_sets(detector, each, model, scores, ood, sweep, tiers)
+
+
+@command("cells", panel=STAGES_PANEL)
+def cells(
+    detector: Annotated[str, typer.Argument()],
+    scores: Annotated[Path, PathOption(help="the scores directory (reads <detector>/ in it)")],
+    out: Annotated[Path, PathOption(help="the cells file, <cells>/<detector>.json")],
+    impact: Annotated[
+        Path | None, PathOption(help="the faults' impact documents (with them, the tier cells)")
+    ] = None,
+    params: ParamsOption = Path("params.yaml"),
+) -> None:
+    """Stage cells: one detector's results cells from its own scores (SPEC §23), which the
+    metrics and tier_metrics stages merge."""
+    from oodrl.io.layout import detector_stage
+    from oodrl.stages.cells import run_cells
+
+    config = _load(params)
+    _known(detector, config.benchmark.detectors, "benchmark.detectors")
+    with _stage(detector_stage(detector, "cells")):
+        run_cells(config, detector, scores, impact, out)
 
 
 @command("tier-metrics", panel=STAGES_PANEL)
 def tier_metrics(
-    scores: Annotated[Path, PathOption()],
+    cells_dir: Annotated[
+        Path, PathOption("--cells", help="the directory of the detectors' cells files")
+    ],
     impact: Annotated[Path, PathOption(help="the directory of the faults' impact documents")],
     results: Annotated[Path, PathOption(help="tier_results.yaml")],
     report: Annotated[Path, PathOption(help="directory: tables.md, impact_curves.png")],
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
     """Stage tier_metrics: every detector at every fault's impact tiers, at the per-stream
-    false-alarm budget (SPEC §15)."""
+    false-alarm budget (SPEC §15), merged from the detectors' cells."""
     from oodrl.stages.tier_metrics import run_tier_metrics
 
     config = _load(params)
     with _stage("tier_metrics"):
-        run_tier_metrics(config, scores, impact, results, report)
+        run_tier_metrics(config, cells_dir, impact, results, report)
 
 
 @command("metrics", panel=STAGES_PANEL)
 def metrics(
-    scores: Annotated[Path, PathOption()],
+    # `cells_dir`, not `cells`: a name of a cli.py function puts that function's code in this
+    # verb's code stamp (oodrl.suite.pipeline._command_nodes), and `cells` is a command.
+    cells_dir: Annotated[
+        Path, PathOption("--cells", help="the directory of the detectors' cells files")
+    ],
     results: Annotated[Path, PathOption()],
     sweep_results: Annotated[Path, PathOption()],
     metrics_file: Annotated[Path, PathOption()],
     tables: Annotated[Path, PathOption()],
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
-    """Stage metrics: per-episode metrics, bootstrap CIs, null baselines, tables."""
+    """Stage metrics: per-episode metrics, bootstrap CIs, null baselines, tables, merged from
+    the detectors' cells."""
     from oodrl.stages.metrics import run_metrics
 
     config = _load(params)
     with _stage("metrics"):
-        run_metrics(config, scores, results, sweep_results, metrics_file, tables)
+        run_metrics(config, cells_dir, results, sweep_results, metrics_file, tables)
 
 
 @command("leaderboard", panel=STAGES_PANEL)

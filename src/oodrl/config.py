@@ -30,10 +30,20 @@ DEFAULT_PARAMS = Path("params.yaml")
 #: not params; `oodrl check-params` keeps every params-set range of streams clear of them.
 POLICY_SEED_OFFSET = 500_000
 RANDOM_SEED_OFFSET = 600_000
-#: The tier search's probes (SPEC §19) at seed + SEARCH_SEED_OFFSET + j, its verifications at
-#: seed + VERIFY_SEED_OFFSET + j: fresh seeds for every probe, held out from every probe.
+#: Protocol 3's tier search (SPEC §19 before version 4): its probes at seed + SEARCH_SEED_OFFSET
+#: + j, its verifications at seed + VERIFY_SEED_OFFSET + j. No stage uses them since protocol 4;
+#: reserved for the impact records built at version 3 and benchmarks/tier_search_sim.py, which
+#: replays that search.
 SEARCH_SEED_OFFSET = 700_000
 VERIFY_SEED_OFFSET = 800_000
+#: Protocol 4's tier search (SPEC §19, §23; `oodrl.protocol.tier_search`): every probe of a fault
+#: on the common seeds seed + CRN_SEARCH_SEED_OFFSET + j (j < tiers.search.search_episodes), the
+#: tiers' verification batches on seed + CRN_VERIFY_SEED_OFFSET + …, each block ending where the
+#: next begins (the verification's at CRN_SEED_BLOCK_END, the policy's final check's first seed).
+#: `TierSearchConfig.check_seed_blocks` refuses sizes that would overflow a block.
+CRN_SEARCH_SEED_OFFSET = 900_000
+CRN_VERIFY_SEED_OFFSET = 950_000
+CRN_SEED_BLOCK_END = 1_000_000
 #: Registered metrics computed only where `metrics.extra` names them (`oodrl.metrics`): added
 #: after the paper's results were written, so the root's results.yaml keeps its records. Here,
 #: not in `oodrl.metrics`, so that loading params never imports the metrics' code (which would
@@ -107,15 +117,53 @@ class MetricsConfig(_Section):
 
 
 class TierSearchConfig(_Section):
-    """The `tiers.search` block (SPEC §19, `oodrl.protocol.impact.search_tier`): each tier's
-    severity is probed, `probe_episodes` fresh whole episodes a probe, at most `max_probes` times,
-    until R̃ at the probed severity is within `tolerance` of the tier's level; then re-measured on
-    `verify_episodes` held-out episodes (the verification)."""
+    """The `tiers.search` block (SPEC §19, §23; `oodrl.protocol.tier_search`): every probe of a
+    fault measures π on the same `search_episodes` reset seeds (common random numbers), at most
+    `max_probes` probes, until each tier's bracket on the monotone fit of the probes lies within
+    `tolerance` of its level (capped at half the tier's loss, `tier_tolerance`) or narrower than
+    `resolution`; each tier is then re-measured on fresh seeds in batches of `verify_batch`
+    episodes, at most `max_verify_batches` in all, the next batch to the widest CI while its
+    half-width exceeds `ci_target`; search and verification together spend at most `budget`
+    episodes a fault."""
 
     tolerance: float = Field(0.015, gt=0, lt=1)
-    probe_episodes: int = Field(50, ge=2)
-    max_probes: int = Field(4, ge=1)
-    verify_episodes: int = Field(100, ge=2)
+    search_episodes: int = Field(
+        100, ge=2, le=CRN_VERIFY_SEED_OFFSET - CRN_SEARCH_SEED_OFFSET
+    )  # the search's seed block
+    max_probes: int = Field(6, ge=1)
+    verify_batch: int = Field(50, ge=2)
+    max_verify_batches: int = Field(6, ge=1)
+    ci_target: float = Field(0.02, gt=0)
+    budget: int = Field(900, ge=1)
+    resolution: float = Field(0.001, gt=0, lt=1)
+
+    def check_seed_blocks(self, n_tiers: int) -> None:
+        """Refuse (one ConfigError naming the key and what is allowed) settings whose
+        verification seeds overflow their block, that cannot give each of `n_tiers` tiers a
+        verification batch, or whose budget cannot pay for the most probes and one batch a
+        tier. `oodrl check-params` runs it, and the tier search before it measures anything."""
+        block = CRN_SEED_BLOCK_END - CRN_VERIFY_SEED_OFFSET
+        seeds = self.max_verify_batches * self.verify_batch
+        if seeds > block:
+            raise ConfigError(
+                f"tiers.search.verify_batch: max_verify_batches {self.max_verify_batches} × "
+                f"verify_batch {self.verify_batch} = {seeds} verification seeds overflow their "
+                f"block of {block} (from seed + {CRN_VERIFY_SEED_OFFSET}). Allowed: "
+                f"max_verify_batches × verify_batch <= {block}."
+            )
+        if self.max_verify_batches < n_tiers:
+            raise ConfigError(
+                f"tiers.search.max_verify_batches: {self.max_verify_batches} batches cannot "
+                f"verify each of the {n_tiers} tiers once. Allowed: {n_tiers} or more."
+            )
+        need = self.max_probes * self.search_episodes + n_tiers * self.verify_batch
+        if need > self.budget:
+            raise ConfigError(
+                f"tiers.search.budget: {self.budget} is below {need}, the most probes "
+                f"(max_probes {self.max_probes} × search_episodes {self.search_episodes}) and "
+                f"one verification batch of {self.verify_batch} for each of {n_tiers} tiers. "
+                f"Allowed: {need} or more."
+            )
 
 
 class TiersConfig(_Section):

@@ -107,6 +107,8 @@ POLICY_VIEW = ("q_margin", "q_entropy", "q_energy", "max_softmax")
 def test_detector_separates_a_blatant_anomaly(name):
     if name in POLICY_VIEW:
         pytest.skip("the policy view's blatant anomalies are test_policy_view.py's")
+    if name == "action_consistency":  # how the action moves, not where the state is (as above)
+        pytest.skip("its blatant anomaly (a nearby decision boundary): test_action_consistency.py")
     if name == "lyapunov_divergence":
         fit = oscillators(12, seed=0)
         clean, perturbed = oscillators(4, seed=1), oscillators(4, seed=1, speedup=2.0)

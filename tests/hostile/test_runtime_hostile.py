@@ -118,7 +118,8 @@ def _corrupt_a_chunk(path: Path) -> None:
             archive.writestr(name, content)
 
 
-SCORE = ["score", DETECTOR, "--model", "models/d.pkl", "--scores", "scores", "--eval"]
+SCORE = ["score", DETECTOR, "--model", "models/d.pkl", "--scores", "scores", "--id",
+         "data/id.zarr", "--eval"]  # fmt: skip
 CORRUPTIONS = [
     ("truncated store", "data/eval.zarr", _truncate, "unreadable store"),
     ("corrupt chunk", "data/eval.zarr", _corrupt_a_chunk, "array '/states'"),

@@ -1,6 +1,7 @@
-"""Per-detector cells and their merge (`oodrl.metrics.cells`): merging every detector's cells
-writes, byte for byte, what today's metrics and tier_metrics stages write; a detector's cells
-read only its own scores; and adding a detector's cells changes nothing of the others'.
+"""Per-detector cells and their merge (`oodrl.metrics.cells`): the metrics and tier_metrics
+stages, merging every detector's cells, write byte for byte what one pass over every detector's
+scores computes; a detector's cells read only its own scores; and adding a detector's cells
+changes nothing of the others'.
 
 On synthetic score stores (written here with the stores' own writer, in the layout the scoring
 stages write) and, marked slow, on the tests' tiny pipeline (`built_repo`)."""
@@ -32,19 +33,18 @@ from oodrl.io.store import severity_key, write_scores
 from oodrl.metrics.cells import (
     cells_path,
     cells_text,
-    detector_cells,
-    merge_cells,
+    ordered_cells,
     parse_cells,
-    read_and_merge,
     read_cells,
     write_cells,
-    write_metrics_outputs,
-    write_tier_outputs,
 )
+from oodrl.metrics.results import assemble_results, compute_results
+from oodrl.metrics.tiers import assemble_tier_results, compute_tier_results
 from oodrl.protocol.impact import LEVELS, UNREACHABLE
 from oodrl.protocol.tiers import impact_path
-from oodrl.stages.metrics import run_metrics
-from oodrl.stages.tier_metrics import run_tier_metrics
+from oodrl.stages.cells import detector_cells
+from oodrl.stages.metrics import run_metrics, write_results
+from oodrl.stages.tier_metrics import run_tier_metrics, write_tier_results
 
 #: The files the two stages write, relative to the folder `_stage_outputs` gives them.
 OUTPUTS = (
@@ -105,7 +105,7 @@ def _write_synthetic(params, root: Path, seed: int = 7) -> tuple[Path, Path]:
                 {"spec": spec, "tiers": TIERS, "mode": "online", "unreachable": []},
             )  # fmt: skip
     for injector in params.benchmark.injectors:
-        check = {"ci": [0.9, 0.97], "normalised": 0.94}
+        check = {"ci": [0.9, 0.97], "normalised": 0.94, "episodes": 2}
         fault = {
             "tiers": {
                 "benign": {"severity": UNREACHABLE},
@@ -142,28 +142,41 @@ def synthetic(params, tmp_path_factory) -> tuple[Path, Path]:
 
 # -- helpers ---------------------------------------------------------------------------------
 def _stage_outputs(params, scores_dir: Path, impact_dir: Path, out: Path) -> dict[str, bytes]:
-    """What today's metrics and tier_metrics stages write on these scores."""
-    run_metrics(params, scores_dir, *(out / name for name in OUTPUTS[:4]))
-    run_tier_metrics(params, scores_dir, impact_dir, out / OUTPUTS[4], out / "tiers")
+    """The files of both stages computed in one pass over every detector's scores."""
+    write_results(params, compute_results(params, scores_dir), *(out / n for n in OUTPUTS[:4]))
+    document = compute_tier_results(params, scores_dir, impact_dir)
+    write_tier_results(params, document, impact_dir, out / OUTPUTS[4], out / "tiers")
     return {name: (out / name).read_bytes() for name in OUTPUTS}
 
 
 def _merged_outputs(params, scores_dir: Path, impact_dir: Path, out: Path) -> dict[str, bytes]:
-    """The same files from every detector's cells, each written to and read back from its own
-    file, then merged."""
+    """The same files as the pipeline writes them: every detector's cells written to and read
+    back from its own file (the cells stage), then merged by the metrics and tier_metrics
+    stages."""
     for detector in params.benchmark.detectors:
         cells = detector_cells(params, scores_dir, impact_dir, detector)
         write_cells(cells, cells_path(out / "cells", detector))
-    merged = read_and_merge(params, out / "cells", impact_dir)
-    metrics = [out / name for name in OUTPUTS[:4]]
-    write_metrics_outputs(params, merged.results, *metrics)
-    write_tier_outputs(params, merged.tier_document, impact_dir, out / OUTPUTS[4], out / "tiers")
+    run_metrics(params, out / "cells", *(out / name for name in OUTPUTS[:4]))
+    run_tier_metrics(params, out / "cells", impact_dir, out / OUTPUTS[4], out / "tiers")
     return {name: (out / name).read_bytes() for name in OUTPUTS}
+
+
+def merge_cells(params, cells_by_detector: dict, impact_dir: Path) -> tuple[object, dict]:
+    """Both stages' merge of every detector's cells: (results, tier_results.yaml's content)."""
+    cells = ordered_cells(params, cells_by_detector)
+    results = assemble_results(params, [(c.detector, (c.records, c.sweep, c.modes)) for c in cells])
+    records = [r for c in cells for r in c.tier_records]
+    return results, assemble_tier_results(params, records, impact_dir)
+
+
+def _read_and_merge(params, cells_dir: Path, impact_dir: Path):
+    cells = {d: read_cells(cells_path(cells_dir, d)) for d in params.benchmark.detectors}
+    return merge_cells(params, cells, impact_dir)
 
 
 def _assert_same_bytes(today: dict[str, bytes], merged: dict[str, bytes]) -> None:
     differ = [name for name in OUTPUTS if today[name] != merged[name]]
-    assert not differ, f"the merge differs from today's stages in {differ}"
+    assert not differ, f"the merge differs from one pass in {differ}"
 
 
 def _one_detector(data: dict, detector: str):
@@ -174,7 +187,7 @@ def _one_detector(data: dict, detector: str):
 
 def _records_of(merged, detector: str) -> dict:
     """Everything of one detector in a merge's outputs."""
-    results, tiers = merged.results, merged.tier_document
+    results, tiers = merged
     return {
         "records": [r.as_dict() for r in results.records if r.detector == detector],
         "sweep": {(i, s): by_detector[detector] for i, per_severity in results.sweep.items()
@@ -242,7 +255,7 @@ def test_adding_a_detectors_cells_changes_nothing_of_the_others(
     first = DETECTORS[0]
     alone = merge_cells(_one_detector(tiny_data, first), {first: cells[first]}, impact_dir)
     assert _records_of(alone, first) == _records_of(both, first)
-    assert [r.detector for r in alone.results.records] == [first] * 4
+    assert [r.detector for r in alone[0].records] == [first] * 4
     # The cells themselves are not changed by a merge.
     assert cells_text(cells[first]) == cells_text(
         detector_cells(params, scores_dir, impact_dir, first)
@@ -331,7 +344,7 @@ def test_the_merge_writes_todays_files_on_the_tiny_pipeline(built_repo, tmp_path
     assert cells_text(detector_cells(params, alone, impact_dir, DETECTORS[0])) == cells_text(cells)
     # Adding the other detector's cells changes nothing of the first's.
     data = read_params_data(built_repo / "params.yaml")
-    both = read_and_merge(params, tmp_path / "merged" / "cells", impact_dir)
+    both = _read_and_merge(params, tmp_path / "merged" / "cells", impact_dir)
     first = merge_cells(_one_detector(data, DETECTORS[0]), {DETECTORS[0]: cells}, impact_dir)
     assert _records_of(first, DETECTORS[0]) == _records_of(both, DETECTORS[0])
     assert file_stamps(built_repo) == before  # the shared build is only read

@@ -18,16 +18,15 @@ __all__ = ["DETECTORS", "INJECTORS", "POLICY_FILES", "python_path", "tiny_params
 
 def detector_stages(detector: str) -> list[str]:
     """Every stage of one detector's DVC file, as `dvc repro` names them."""
-    return [
-        detector_stage(detector, "fit"),
-        detector_stage(detector, "score_clean"),
-        *injector_scoring([detector], *INJECTORS),
-    ]
+    return [detector_stage(detector, "fit"), detector_stage(detector, "score_clean"),
+            *fault_scoring([detector])]  # fmt: skip
 
 
-def injector_scoring(detectors: list[str], *injectors: str) -> list[str]:
-    """The scoring stages (headline, sweep and tier sets) of `detectors` on `injectors`."""
-    return [detector_stage(d, "score", i) for d in detectors for i in injectors]
+def fault_scoring(detectors: list[str]) -> list[str]:
+    """What an injector's knob re-runs of each of `detectors`: its scoring of every injector's
+    headline set and of their sweeps and tier streams, and its cells."""
+    return [detector_stage(d, stage) for d in detectors
+            for stage in ("score", "score_variants", "cells")]  # fmt: skip
 
 
 def injector_stages(injector: str) -> list[str]:

@@ -83,7 +83,8 @@ def test_every_stage_depends_on_its_code_stamp_and_check_params_on_the_sources(r
     kde = yaml.safe_load((repo_root / detector_pipeline("kde_density")).read_text())["stages"]
     assert "data/code/fit-kde_density.txt" in kde["fit"]["deps"]
     assert "data/code/score-kde_density.txt" in kde["score_clean"]["deps"]
-    assert "data/code/score-kde_density.txt" in kde["score"]["do"]["deps"]
+    assert "data/code/score-kde_density.txt" in kde["score"]["deps"]
+    assert "data/code/cells-kde_density.txt" in kde["cells"]["deps"]
     every = [*stages.values(), *kde.values()]
     deps = [d for s in every for d in s.get("deps", s.get("do", {}).get("deps", []))]
     assert not [d for d in deps if d.startswith("src/") and d != "src/oodrl"]
@@ -135,7 +136,12 @@ def test_environment_pipeline_paths_are_relative_to_its_directory(env_project):
     assert kde["fit"]["wdir"] == "../.."  # paths stay relative to the environment's directory
     assert stages["collect_id"]["params"][0][MERGED_PARAMS][:2] == ["seed", "env"]
     assert stages["collect_ood"]["foreach"] == shared["benchmark"]["injectors"]
-    assert kde["score"]["foreach"] == shared["benchmark"]["injectors"]
+    # A stage reading every injector's set lists each (SPEC §23), written out from the list.
+    injectors = shared["benchmark"]["injectors"]
+    assert [d for d in kde["score"]["deps"] if d.startswith("data/ood/")] == [
+        f"data/ood/{i}.zarr" for i in injectors
+    ]
+    assert kde["score"]["outs"] == [f"scores/kde_density/{i}.zarr" for i in injectors]
     assert stages["train_policy"]["outs"][0] == {
         "models/policy.pt": {"cache": False, "persist": True}
     }
@@ -168,13 +174,19 @@ def test_a_shared_fan_out_change_makes_environment_pipelines_stale(env_project):
     shared = yaml.safe_load((env_project / "params.yaml").read_text())
     shared["benchmark"]["detectors"].remove("pedm")
     (env_project / "params.yaml").write_text(yaml.safe_dump(shared))
-    with pytest.raises(ConfigError, match="detectors/pedm/dvc.yaml belongs to a detector"):
+    # The merge stages list every detector's cells file (SPEC §23): the dvc.yaml is stale first.
+    with pytest.raises(ConfigError, match="unexpected '- cells/pedm.json'"):
         check_pipeline(env_project / "dvc.yaml")
-    with pytest.raises(ConfigError, match="pipeline/cartpole/detectors/pedm/dvc.yaml"):
+    with pytest.raises(ConfigError, match="pipeline/cartpole/dvc.yaml is not what the template"):
         check_pipeline(env_project / "pipeline" / "cartpole" / "dvc.yaml")
+    orphan = (env_project / detector_pipeline("pedm")).read_text()
     write(env_project)
     assert not (env_project / detector_pipeline("pedm")).exists()
     check_files(env_project)
+    # A detector's file left behind, its dvc.yaml current, is named.
+    (env_project / detector_pipeline("pedm")).write_text(orphan)
+    with pytest.raises(ConfigError, match="detectors/pedm/dvc.yaml belongs to a detector"):
+        check_pipeline(env_project / "dvc.yaml")
 
 
 def test_an_environment_pipeline_without_its_dvc_project_is_refused(env_project):
@@ -286,6 +298,7 @@ def test_closure_counts_nested_imports_parents_and_import_path_strings(tmp_path)
 def test_stage_kind_names_the_component_its_command_builds():
     assert stage_kind("oodrl fit ${item} --id data/id.zarr --out x.pkl") == ("fit", "${item}")
     assert stage_kind("oodrl score kde --injector x --model m") == ("score", "kde")
+    assert stage_kind("oodrl cells kde --scores s --out c.json") == ("cells", "kde")
     assert stage_kind("oodrl collect-id --policy p --out o") == ("collect-id", None)
     assert stage_kind("python script.py") is None
 
@@ -386,18 +399,21 @@ def test_the_suite_pipeline_reads_every_runs_results(repo_root):
     assert "leaderboard" not in root_stages  # the root `dvc repro` stays the paper default
 
 
-def test_every_directory_that_stages_fill_is_ignored_whole(repo_root):
-    """A dep on a directory that other stages' outputs fill is one of FILLED_DIRS, which every
-    project's .gitignore ignores whole, the root's too (SPEC §21): a fresh clone has none of
-    them, so `dvc repro --pull --allow-missing` finds such a dep missing, not modified."""
+def test_no_stage_reads_a_directory_other_stages_fill(repo_root):
+    """Every dep is one stage's output or a file no stage writes, never a directory several
+    stages fill (SPEC §23: `dvc repro --pull --allow-missing` pulls exactly what a stage
+    reads). The directories several stages fill are FILLED_DIRS, which every project's
+    .gitignore ignores whole, the root's too, so DVC writes no .gitignore inside them."""
     bodies = [
         stage.get("do", stage)
         for template in (TEMPLATE, DETECTOR_TEMPLATE)
         for stage in yaml.safe_load(template.read_text())["stages"].values()
     ]
-    outs = {o if isinstance(o, str) else next(iter(o)) for b in bodies for o in b.get("outs", [])}
+    outs = [[o if isinstance(o, str) else next(iter(o)) for o in b.get("outs", [])] for b in bodies]
+    every_out = {o for stage_outs in outs for o in stage_outs}
     deps = {dep for body in bodies for dep in body.get("deps", [])}
-    filled = {d for d in deps - outs if any(out.startswith(f"{d}/") for out in outs)}
-    assert filled == set(FILLED_DIRS)
+    assert not {d for d in deps - every_out if any(o.startswith(f"{d}/") for o in every_out)}
+    for directory in FILLED_DIRS:  # a detector template's stage writes one output a detector
+        assert any(o.startswith(f"{directory}/") for o in every_out), directory
     assert FILLED_DIRS_IGNORED in (repo_root / ".gitignore").read_text()
     assert FILLED_DIRS_IGNORED in SUBREPO_FILES[".gitignore"]

@@ -75,5 +75,6 @@ def test_a_shared_detector_knob_reruns_that_detector_in_the_environment(cartpole
     assert [name.removeprefix("dvc.yaml:") for name in ran] == ["check_params"]
     status = run(cartpole_repo / ENV, "dvc", "status", "--json").stdout
     assert {name.removeprefix("dvc.yaml:") for name in json.loads(status)} == {
-        detector_stage("kde_density", "fit"), "metrics", "tier_metrics"
+        detector_stage("kde_density", "fit"), detector_stage("kde_density", "cells"), "metrics",
+        "tier_metrics",
     }  # fmt: skip

@@ -54,7 +54,7 @@ def test_failing_detector_names_itself_and_the_episode_and_keep_going_completes(
     edit_params(repo, lambda p: p["detectors"]["kde_density"].update(threshold_percentile=97.0))
     kept = run(repo, "dvc", "repro", "-k", check=False, env=plugin_env)
     assert kept.returncode != 0
-    stage = detector_stage("kde_density", "score", "stuck_actuator")
+    stage = detector_stage("kde_density", "score")
     assert f"Running stage '{stage}'" in kept.stdout
     status = run(repo, "dvc", "status", "--json", "--with-deps", "dvc.yaml").stdout
     status = yaml.safe_load(status) or {}
@@ -93,8 +93,8 @@ def test_corrupt_store_and_pickle_give_clear_errors(repo):
     store = repo / "data/eval.zarr"
     store.write_bytes(store.read_bytes()[: store.stat().st_size // 2])
     done = run(repo, "oodrl", "score", "kde_density", "--model",
-               "models/detectors/kde_density.pkl", "--eval", "data/eval.zarr", "--scores",
-               "x", check=False)  # fmt: skip
+               "models/detectors/kde_density.pkl", "--id", "data/id.zarr", "--eval",
+               "data/eval.zarr", "--scores", "x", check=False)  # fmt: skip
     assert done.returncode == 1
     # The committed bytes are restored from the cache first, never recomputed (SPEC §22).
     assert "`dvc checkout --force data/eval.zarr`" in done.stderr
@@ -103,8 +103,8 @@ def test_corrupt_store_and_pickle_give_clear_errors(repo):
 
     (repo / "models/detectors/kde_density.pkl").write_bytes(b"not a pickle")
     done = run(repo, "oodrl", "score", "kde_density", "--model",
-               "models/detectors/kde_density.pkl", "--eval", "data/id.zarr", "--scores",
-               "x", check=False)  # fmt: skip
+               "models/detectors/kde_density.pkl", "--id", "data/id.zarr", "--eval",
+               "data/id.zarr", "--scores", "x", check=False)  # fmt: skip
     assert done.returncode == 1
     hint = f"dvc repro -s -f {detector_stage('kde_density', 'fit')}"
     assert hint in done.stderr and "Traceback" not in done.stderr

@@ -10,7 +10,7 @@ from conftest import (
     DETECTORS,
     INJECTORS,
     detector_stages,
-    injector_scoring,
+    fault_scoring,
     injector_stages,
 )
 
@@ -56,11 +56,13 @@ def test_full_pipeline_writes_every_output(built_repo):
 
 def _check_tier_results(repo) -> None:
     """SPEC §15: every detector at every reachable tier of every fault, at the per-stream rule."""
-    from oodrl.protocol.impact import UNREACHABLE
+    from oodrl.metrics.stamp import PROTOCOL_VERSION
+    from oodrl.protocol.impact import tier_severity
     from oodrl.protocol.tiers import read_impact, read_tiers
 
     document = yaml.safe_load((repo / "reports/tier_results.yaml").read_text())
-    assert document["protocol_version"] == 3 and document["params_hash"].startswith("sha256:")
+    assert document["protocol_version"] == PROTOCOL_VERSION
+    assert document["params_hash"].startswith("sha256:")
     reachable = {
         (i, tier) for i in INJECTORS for tier in read_tiers(repo / f"data/impact/{i}.yaml", i)[0]
     }
@@ -84,9 +86,10 @@ def _check_tier_results(repo) -> None:
         measured = read_impact(repo / f"data/impact/{fault}.yaml", fault)["fault"]
         assert impact["curve"] == measured["curve"]  # the leaderboard page draws it
         for tier in impact["tiers"].values():
-            assert tier["severity"] == UNREACHABLE or 0 < tier["severity"] <= 1
-            if tier["severity"] != UNREACHABLE:  # measured where it is read, and verified
-                assert tier["verification"]["episodes"] == TINY_TIERS["search"]["verify_episodes"]
+            assert tier_severity(tier) is None or 0 < tier["severity"] <= 1
+            if tier_severity(tier) is not None:  # measured where it is read, and verified
+                batch = TINY_TIERS["search"]["verify_batch"]
+                assert tier["verification"]["episodes"] == batch * tier["verification"]["batches"]
     assert set(document["minimum_detectable_impact"]) <= set(DETECTORS)
     assert (repo / "reports/tiers/tables.md").read_text().startswith("# Impact tiers")
     assert (repo / "reports/tiers/impact_curves.png").stat().st_size > 0
@@ -110,7 +113,7 @@ def test_injector_param_reruns_only_that_injector(repo):
     after = lock_hashes(repo)
     assert ran == sorted([
         "check_params", *injector_stages("observation_delay"),
-        *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render", "tier_metrics",
+        *fault_scoring(DETECTORS), "metrics", "render", "tier_metrics",
     ])  # fmt: skip
     assert after["data/ood/stuck_actuator.zarr"] == before["data/ood/stuck_actuator.zarr"]
     assert after["data/ood/observation_delay.zarr"] != before["data/ood/observation_delay.zarr"]
@@ -127,14 +130,15 @@ def _stale(repo, *after: str) -> list[str]:
 def _downstream(repo, stages) -> set[str]:
     """The stages that follow `stages` in the pipeline's graph: a dep of theirs is an output of
     one of `stages`, or holds or is held by one (deps and outs as the locks record them; a lock
-    keeps the stages of injectors the tiny benchmark dropped, left out here)."""
+    keeps the stages of injectors the tiny benchmark dropped, and protocol 3's per-injector
+    scoring stages, left out here)."""
     locks = {"": repo / "dvc.lock"}
     locks.update({f"{detector_pipeline(d)}:": repo / detector_pipeline(d) for d in DETECTORS})
     locked = {
         prefix + name: stage
         for prefix, path in locks.items()
         for name, stage in yaml.safe_load(path.with_suffix(".lock").read_text())["stages"].items()
-        if name.partition("@")[2] in ("", *INJECTORS)
+        if name.partition("@")[2] in ("", *INJECTORS) and not (prefix and "@" in name)
     }
 
     def follows(dep: str, out: str) -> bool:
@@ -153,8 +157,9 @@ def _downstream(repo, stages) -> set[str]:
 
 def test_detector_param_reruns_only_that_detector(repo):
     edit_params(repo, lambda p: p["detectors"]["kde_density"].update(threshold_percentile=95.0))
-    stale = _stale(repo)  # the knob's readers: fit, and the stages that stamp results
-    assert stale == sorted(["check_params", detector_stage("kde_density", "fit"), "metrics",
+    stale = _stale(repo)  # the knob's readers: fit, cells (its latency), the results' stamps
+    assert stale == sorted(["check_params", detector_stage("kde_density", "fit"),
+                            detector_stage("kde_density", "cells"), "metrics",
                             "tier_metrics"])  # fmt: skip
     # What follows them (check_params's outputs stay the same when a check passes).
     ran = {*stale, *_downstream(repo, set(stale) - {"check_params"})}
@@ -168,8 +173,7 @@ def test_headline_severity_reruns_the_headline_sets_and_their_scoring_only(repo)
     edit_params(repo, lambda p: p["anomaly"].update(severity=0.7))
     ran = repro(repo)
     after = lock_hashes(repo)
-    # A scoring stage scores an injector's sweep and tiers with its headline set: they come
-    # out the same, so nothing downstream of them differs.
+    # The sweeps and tier streams are scored by a stage of their own (SPEC §23): not re-run.
     for d in DETECTORS:
         for i in INJECTORS:
             for store in (f"scores/{d}/sweep/{i}.zarr", f"scores/{d}/tiers/{i}.zarr"):
@@ -177,7 +181,7 @@ def test_headline_severity_reruns_the_headline_sets_and_their_scoring_only(repo)
             assert after[f"scores/{d}/{i}.zarr"] != before[f"scores/{d}/{i}.zarr"]
     assert ran == sorted([
         "check_params", *(f"collect_ood@{i}" for i in INJECTORS),
-        *(detector_stage(d, "score", i) for d in DETECTORS for i in INJECTORS),
+        *(detector_stage(d, stage) for d in DETECTORS for stage in ("score", "cells")),
         "metrics", "render", "tier_metrics",
     ])  # fmt: skip
 
@@ -202,12 +206,15 @@ CODE_EDITS = {  # edited file -> the stages allowed to run (DVC skips those whos
     },
     "src/oodrl/injectors/posthoc.py": {  # observation_delay is the tiny params' post-hoc one
         "check_params", *injector_stages("observation_delay"),
-        *injector_scoring(DETECTORS, "observation_delay"), "metrics", "render", "tier_metrics",
+        *fault_scoring(DETECTORS), "metrics", "render", "tier_metrics",
         # The tier stages of every fault, and the impact reference, import the live observation
         # faults (an over-approximation: their outputs, and so what follows them, stay the same).
         "impact_reference", "impact@stuck_actuator", "collect_tiers@stuck_actuator",
     },
-    "src/oodrl/metrics/ranking.py": {"check_params", "metrics", "render", "tier_metrics"},
+    "src/oodrl/metrics/ranking.py": {  # the cells import it with the records they compute
+        "check_params", *(detector_stage(d, "cells") for d in DETECTORS), "metrics", "render",
+        "tier_metrics",
+    },
 }  # fmt: skip
 MUST_RUN = {  # the stages whose code stamp changed: they run even when outputs stay the same
     "src/oodrl/detectors/kde.py": {
@@ -243,6 +250,12 @@ def test_lock_stays_small(built_repo):
     detector_file = built_repo / detector_pipeline(DETECTORS[0])
     detector_lock = yaml.safe_load(detector_file.with_suffix(".lock").read_text())["stages"]
     assert len(lock["collect_id"]["deps"]) <= 6
-    assert len(lock["render"]["deps"]) <= 7  # the reports it draws, and what its cost times
-    # score_clean: the checked params, the model, its code stamp and the four clean sets.
-    assert all(len(stage["deps"]) <= 7 for stage in detector_lock.values())
+    # The reports it draws, the evaluation set, and each detector's model and the stores it
+    # plots (its clean and headline scores): files, never a directory (SPEC §23).
+    n = len(INJECTORS)
+    assert len(lock["render"]["deps"]) == 5 + len(DETECTORS) * (n + 2)
+    # The checked params and its code stamp, then what it reads: score_clean the model and the
+    # five clean sets; cells every score store of the detector and each fault's impact record.
+    deps = {"fit": 3, "score_clean": 8, "score": 3 + n, "score_variants": 3 + 2 * n,
+            "cells": 7 + 4 * n}  # fmt: skip
+    assert {name: len(detector_lock[name]["deps"]) for name in deps} == deps

@@ -64,7 +64,8 @@ def test_every_hint_reruns_only_the_broken_stage(repo):
         assert restore_hint(repo / name, stage) in str(info.value)
     stages = [
         "collect_id", "collect_eval", f"collect_ood@{injector}", f"collect_sweep@{injector}",
-        fit, detector_stage(detector, "score_clean"), detector_stage(detector, "score", injector),
+        fit, detector_stage(detector, "score_clean"), detector_stage(detector, "score"),
+        detector_stage(detector, "cells"),
         "metrics", "render",
     ]  # fmt: skip
     for stage in stages:

@@ -712,3 +712,52 @@ def test_the_committed_page_opens_on_the_ranking_with_its_cis(tmp_path: Path):
     assert colours[loudest] < colours[quietest]  # the more alarms, the further from green
     for d in (loudest, quietest):
         assert abs(colours[d] - 120 * (1 - rates[d]["value"])) < 2.5
+
+
+@pytest.mark.slow
+@needs_chromium
+def test_what_the_time_aware_rule_changes_is_shown_for_the_chosen_tier(tmp_path: Path):
+    """SPEC §24: CartPole's tier results hold both rules (pedm gains 5 streams a cell under the
+    time-aware one), Hopper's the constant rule only (protocol 3's): the page shows, below the
+    ranking, each detector's difference on the chosen tier's cells with both rules."""
+    results = write_results(tmp_path / "runs")
+    for run, (_, tiers) in results.items():
+        if run[0] != "CartPole-v1":
+            continue
+        document = yamlio.load(tiers.read_text())
+        for record in document["records"]:
+            hits = record["episodes"][RATE]
+            detected = int(sum(hits)) + (5 if record["detector"] == "pedm" else 0)
+            aware = [1.0] * min(detected, N_FAULTY) + [0.0] * (N_FAULTY - min(detected, N_FAULTY))
+            record["episodes"][f"time_aware_{RATE}"] = aware
+        tiers.write_text(yamlio.dump(document))
+    run_leaderboard(results, tmp_path / "out", n_boot=50, ci=0.95, seed=0)
+    page = tmp_path / "out" / "leaderboard.html"
+    data = embedded(page)
+    assert RATE in data["rule_change"] and f"time_aware_{RATE}" not in data["metrics"]
+    probe = """(() => {
+      const shown = () => ({
+        hidden: $('rule-change-section').hidden, title: $('rule-change-title').textContent,
+        rows: [...document.querySelectorAll('#rule-change tbody tr')]
+          .map(r => [r.dataset.detector, r.children[1].textContent]),
+        foot: $('rule-change-foot').textContent,
+        below: box($('rule-change-section'))[1] >= box($('ranking'))[3],
+      });
+      const seen = {mild: shown()};
+      choose('tier', 'benign'); seen.benign = shown();
+      choose('metric', 'matched_auroc'); seen.auroc = shown();
+      return seen;
+    })()"""
+    facts = browse(file_url(page), probe, tmp_path / "leaderboard_rule_change.png")
+    for tier, seen in (("mild", facts["mild"]), ("benign", facts["benign"])):
+        change = data["rule_change"][RATE][tier]
+        assert not seen["hidden"] and seen["below"]
+        title = f"What the time-aware rule changes · tier {tier} · {RATE} at α = 0.05"
+        assert seen["title"] == title
+        assert [d for d, _ in seen["rows"]] == ["pedm", "cusum", "kde_density"]  # largest first
+        diff = change["detectors"]["pedm"]["difference"]
+        assert seen["rows"][0][1].startswith(f"+{diff['value']:.3f} [")
+        assert seen["rows"][1][1] == "+0.000 [+0.000, +0.000]"
+        assert seen["foot"].startswith("Kendall τ between the two rules' IQM rankings: ")
+    # Another metric chosen: the detection rate's change on that tier is still shown.
+    assert facts["auroc"]["rows"] == facts["benign"]["rows"]

@@ -323,3 +323,89 @@ def test_the_floor_is_marked_and_detectors_not_above_it_are_named(tmp_path: Path
     assert "1 of 2 do. Not above the floor: kde_density." in table
     page = json.loads((tmp_path / "out" / "leaderboard.json").read_text())
     assert page["floor_detector"] == "random_scores"
+
+
+def _rule_results(
+    path: Path, gains: dict[str, float] | None, more: dict[str, float] | None = None,
+    streams: int = 40,
+) -> Path:  # fmt: skip
+    """Tier results whose records hold both rules' detections per stream (`gains`: the
+    detectors' time-aware rate minus their constant rate), or the constant rule's only (None:
+    results of protocol 3); `more`: detectors of this run only, with their constant rate."""
+    strength = {"cusum": 0.8, "kde_density": 0.3, "pedm": 0.5, **(more or {})}
+    records = []
+    for tier in ("mild", "moderate"):
+        for fault in ("gaussian_state_noise", "stuck_actuator", "gradual_drift"):
+            for d, rate in strength.items():
+                hits = (np.arange(streams) < rate * streams).astype(float)
+                episodes = {"matched_auroc": [0.7] * streams, "detection_rate@100": hits.tolist()}
+                if gains is not None:
+                    gained = np.arange(streams) < (rate + gains.get(d, 0.0)) * streams
+                    episodes["time_aware_detection_rate@100"] = gained.astype(float).tolist()
+                records.append({
+                    "kind": "anomaly", "detector": d, "injector": fault, "mode": "online",
+                    "tier": tier, "verified": True, "metrics": {}, "episodes": episodes,
+                    "operating_point": {"alpha": 0.05, "k": 100},
+                })  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yamlio.dump({"protocol_version": 4, "records": records}))
+    return path
+
+
+def test_what_the_time_aware_rule_changes_pairs_the_rules_where_results_hold_both(tmp_path):
+    """SPEC §24: per detector, time-aware minus constant over the cells whose records hold both
+    rules (a run of protocol 3 holds one: not in it), with its paired bootstrap CI and Kendall
+    τ; in leaderboard.md, .yaml and .json, never ranked as a metric of its own."""
+    results = {
+        # q_margin runs on CartPole only (as the policy view on a discrete-action run).
+        "CartPole-v1": _rule_results(
+            tmp_path / "a.yaml", {"kde_density": 0.5, "q_margin": 0.1}, {"q_margin": 0.2}
+        ),
+        "Hopper-v5": _rule_results(tmp_path / "b.yaml", {"kde_density": 0.5}),
+        "Pendulum-v1": _rule_results(tmp_path / "c.yaml", None),
+    }
+    board = run_leaderboard(results, tmp_path / "out", n_boot=200, ci=0.95, seed=0)
+    assert board.metrics == ("detection_rate@100", "matched_auroc")  # not ranked itself
+    change = board.rule_change[("detection_rate@100", "mild")]
+    assert (change.n_cells, change.n_tier_cells) == (6, 9)
+    assert change.detectors == ["cusum", "kde_density", "pedm", "q_margin"]
+    environments, common = change.scopes[0]
+    assert environments == ("CartPole-v1", "Hopper-v5")
+    kde, cusum = common.differences["kde_density"], common.differences["cusum"]
+    assert kde.mean == pytest.approx(0.5) and kde.excludes_zero and kde.n_cells == 6
+    assert (cusum.mean, cusum.ci_low, cusum.ci_high) == (0.0, 0.0, 0.0)
+    assert not cusum.excludes_zero
+    # Only kde_density moves (0.3 -> 0.8), past pedm and level with cusum: τ below 1.
+    assert common.kendall_tau < 1
+    scope, q_margin = change.of("q_margin")
+    assert scope == ("CartPole-v1",) and q_margin.differences["q_margin"].n_cells == 3
+
+    text = (tmp_path / "out" / "leaderboard.md").read_text()
+    heading = "## What the time-aware rule changes: detection_rate@100 at α = 0.05"
+    assert text.count(heading) == 1
+    section = text[text.index(heading) :]
+    assert "| detector | mild: time-aware − constant [95% CI] | moderate: time-aware" in section
+    # The lead board's order (the constant rule's), then a detector it does not rank.
+    assert table_rows(section, heading)[2:6] == ["cusum", "pedm", "kde_density", "q_margin"]
+    assert "| kde_density | +0.500 [" in section and "] * |" in section
+    assert "| cusum | +0.000 [+0.000, +0.000] |" in section
+    assert "| cells with both rules | 6 of 9 | 6 of 9 |" in section
+    assert "† over the cells where the detector runs" in section
+    assert "time_aware_detection_rate" not in text
+    document = yamlio.load((tmp_path / "out" / "leaderboard.yaml").read_text())
+    assert set(document["boards"]) == {"detection_rate@100", "matched_auroc"}
+    mild = document["rule_change"]["detection_rate@100"]["mild"]
+    assert mild["n_cells"] == 6 and mild["detectors"]["kde_density"]["changed"] is True
+    assert mild["detectors"]["kde_density"]["difference"]["value"] == 0.5
+    assert mild["detectors"]["q_margin"]["environments"] == ["CartPole-v1"]
+    assert mild["kendall_tau"][0]["tau"] == round(common.kendall_tau, 6)
+    page = json.loads((tmp_path / "out" / "leaderboard.json").read_text())
+    assert page["rule_change"] == document["rule_change"]
+    assert all(set(c["scores"]) <= set(page["metrics"]) for c in page["cells"])
+    assert 'id="rule-change-section"' in (tmp_path / "out" / "leaderboard.html").read_text()
+
+    # Results of protocol 3 alone: nothing to compare, no key, no section.
+    run_leaderboard({"Pendulum-v1": results["Pendulum-v1"]}, tmp_path / "old", 50, 0.95, 0)
+    assert "rule_change" not in yamlio.load((tmp_path / "old" / "leaderboard.yaml").read_text())
+    assert "rule_change" not in json.loads((tmp_path / "old" / "leaderboard.json").read_text())
+    assert "time-aware" not in (tmp_path / "old" / "leaderboard.md").read_text()

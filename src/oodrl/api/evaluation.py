@@ -347,12 +347,12 @@ def _top_level_block(text: str, key: str) -> str | None:
 
 
 def _reachable(committed: Mapping[str, Mapping[str, Any]]) -> dict[str, list[str]]:
-    from oodrl.protocol.impact import UNREACHABLE
+    from oodrl.protocol.impact import tier_severity
 
     return {
-        fault: [t for t, record in tiers.items() if record.get("severity") != UNREACHABLE]
+        fault: [t for t, record in tiers.items() if tier_severity(record) is not None]
         for fault, tiers in committed.items()
-        if any(record.get("severity") != UNREACHABLE for record in tiers.values())
+        if any(tier_severity(record) is not None for record in tiers.values())
     }
 
 
@@ -430,9 +430,9 @@ def _run(
         detector.calibrate(id_set.subset(split["calibration"]).trajectories())
         fit_s = time.perf_counter() - start
         save_detector(model, detector, key, detector.get_params())
-        score_clean_sets(key, model, scores, None, heldout)
-        for fault, path in tier_paths.items():
-            score_injector_sets(key, fault, model, scores, None, None, path)
+        score_clean_sets(key, model, scores, None, heldout, id_path=id_path)
+        for fault in tier_paths:
+            score_injector_sets(key, fault, model, scores, None, None, data / "tiers")
         records = _detector_records(
             _WithDetector(params, key, detector), scores, tmp / IMPACT_DIR, key
         )

@@ -34,5 +34,8 @@ DETECTORS.register("conformal_martingale", "oodrl.detectors.martingale:Conformal
 DETECTORS.register("deedee", "oodrl.detectors.deedee:Deedee")
 DETECTORS.register("random_scores", "oodrl.detectors.random_scores:RandomScores")
 DETECTORS.register("riqn", "oodrl.detectors.riqn:Riqn")
+# Sequential baselines of SPEC §24 (protocol 4).
+DETECTORS.register("cusum_tv", "oodrl.detectors.cusum_tv:CusumTV")
+DETECTORS.register("action_consistency", "oodrl.detectors.action_consistency:ActionConsistency")
 
 __all__ = ["DETECTORS"]

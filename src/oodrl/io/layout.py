@@ -22,11 +22,11 @@ def detector_pipeline(detector: str) -> str:
     return f"{DETECTOR_PIPELINES}/{detector}/dvc.yaml"
 
 
-def detector_stage(detector: str, stage: str, injector: str | None = None) -> str:
-    """The DVC address of one of a detector's stages: 'fit', 'score_clean' (the clean sets) or
-    'score@<injector>' (the injector's headline, sweep and tier sets)."""
-    name = stage if injector is None else f"{stage}@{injector}"
-    return f"{detector_pipeline(detector)}:{name}"
+def detector_stage(detector: str, stage: str) -> str:
+    """The DVC address of one of a detector's stages: 'fit', 'score_clean' (the clean sets),
+    'score' (the injectors' headline sets), 'score_variants' (their sweeps and tier streams) or
+    'cells' (its results cells)."""
+    return f"{detector_pipeline(detector)}:{stage}"
 
 
 def score_store(scores_dir: Path, detector: str, injector: str | None = None) -> Path:
@@ -49,6 +49,12 @@ def heldout_score_store(scores_dir: Path, detector: str, which: str) -> Path:
     """`detector`'s scores of a held-out clean set (`oodrl.protocol.streams.HELDOUT_SETS`: the
     per-stream alarm rule's calibration streams, the audit streams, the tier cells' twins)."""
     return Path(scores_dir) / detector / f"{which}.zarr"
+
+
+def id_score_store(scores_dir: Path, detector: str) -> Path:
+    """`detector`'s scores of the ID set (`data/id.zarr`: the streams it was fitted and
+    calibrated on), whose per-step law the time-aware rule standardises by (SPEC §24)."""
+    return Path(scores_dir) / detector / "id.zarr"
 
 
 def calibration_score_store(scores_dir: Path, detector: str) -> Path:

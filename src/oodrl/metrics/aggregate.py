@@ -345,3 +345,10 @@ def summarise(
             result = episode_bootstrap(per_episode[name], **options)
         summary[name] = result.as_dict()
     return summary
+
+
+def interquartile_mean(values: np.ndarray, axis: int | None = -1) -> np.ndarray:
+    """The mean of the middle 50% (25% trimmed from each end), as scipy's trim_mean."""
+    from scipy.stats import trim_mean
+
+    return trim_mean(values, 0.25, axis=axis)

@@ -1,14 +1,16 @@
-"""One detector's cells, and their merge (protocol 4's stage split; not yet wired into a stage).
+"""One detector's cells, and their merge (protocol 4's stage split, SPEC §23).
 
-Today an environment's `metrics` and `tier_metrics` stages read every detector's scores and
-recompute every detector's numbers when one detector is added. Split, a per-detector stage
-computes only that detector's cells (`detector_cells`: its results records, its sweep summaries
-and its tier records) from its own scores, `scores/<detector>/`, and the shared impact documents,
-writes them to a file of its own (`write_cells`), and a cheap per-environment merge
-(`merge_cells`, `write_metrics_outputs`, `write_tier_outputs`) writes the files people read —
+A per-detector stage, `cells`, computes only that detector's cells
+(`oodrl.stages.cells.detector_cells`: its
+results records, its sweep summaries and its tier records) from its own scores,
+`scores/<detector>/`, and the shared impact documents, and writes them to a file of its own
+(`write_cells`); the environment's `metrics` and `tier_metrics` stages merge every detector's
+cells (`read_all_cells`, then `oodrl.metrics.results.assemble_results` and
+`oodrl.metrics.tiers.assemble_tier_results`) into the files people read —
 reports/results.yaml, sweep_results.yaml, metrics.json, tables.md, tier_results.yaml and
-reports/tiers/ — byte for byte as `oodrl.stages.metrics.run_metrics` and
-`oodrl.stages.tier_metrics.run_tier_metrics` write them.
+reports/tiers/ — byte for byte as one computation over every detector's scores writes them
+(`oodrl.metrics.results.compute_results`; tests/metrics/test_cells.py). Adding a detector
+computes nothing of the others.
 
 Why the split keeps every byte:
 
@@ -21,7 +23,8 @@ Why the split keeps every byte:
   randomness, and the per-stream threshold comes from the detector's own calibration streams.
   So `results._detector_results` and `tiers._detector_records`, called here one detector at a
   time exactly as `compute_results` / `compute_tier_results` call them in `ordered_map`, give
-  the same numbers.
+  the same numbers, and both assemble them with the same functions (`assemble_results`,
+  `assemble_tier_results`).
 - What is global across detectors is done in the merge, with today's functions or today's
   assembly steps: the records' sort, the injectors' modes (`dict.update` in detector order), the
   sweep's insertion order (injector, then severity as the first detector lists it, then
@@ -55,7 +58,7 @@ from typing import Any
 
 from oodrl.config import Params
 from oodrl.errors import ContractError, StoreError
-from oodrl.metrics.results import ResultRecord, Results, Summary
+from oodrl.metrics.results import ResultRecord, Summary
 
 #: The cells file's format name and version (`write_cells`).
 CELLS_FORMAT = "oodrl-cells"
@@ -83,35 +86,6 @@ class DetectorCells:
     sweep: dict[tuple[str, float], Summary]
     modes: dict[str, str]
     tier_records: list[dict[str, Any]]
-
-
-@dataclass(frozen=True)
-class MergedOutputs:
-    """What the metrics stage computes (`Results`, as `compute_results` returns it) and what
-    the tier_metrics stage writes to tier_results.yaml (as `compute_tier_results` returns it)."""
-
-    results: Results
-    tier_document: dict[str, Any]
-
-
-# -- one detector ------------------------------------------------------------------------------
-def detector_cells(
-    params: Params, scores_dir: Path, impact_dir: Path, detector: str
-) -> DetectorCells:
-    """`detector`'s cells from its own score stores (`scores_dir/<detector>/`) and the faults'
-    impact documents (`impact_dir`, the tiers' verification): no other detector's scores are
-    read."""
-    from oodrl.metrics.results import _detector_results
-    from oodrl.metrics.tiers import _detector_records
-
-    if detector not in params.benchmark.detectors:
-        raise ContractError(
-            f"Detector {detector!r} is not in benchmark.detectors "
-            f"({', '.join(params.benchmark.detectors)})."
-        )
-    records, sweep, modes = _detector_results(params, Path(scores_dir), detector)
-    tier_records = _detector_records(params, Path(scores_dir), Path(impact_dir), detector)
-    return DetectorCells(detector, records, sweep, modes, tier_records)
 
 
 # -- the cells file ----------------------------------------------------------------------------
@@ -239,8 +213,10 @@ def read_cells(path: Path) -> DetectorCells:
     return parse_cells(path.read_text(), str(path))
 
 
-# -- the merge ---------------------------------------------------------------------------------
-def _ordered(params: Params, cells_by_detector: Mapping[str, DetectorCells]) -> list[DetectorCells]:
+# -- every detector's cells -------------------------------------------------------------------
+def ordered_cells(
+    params: Params, cells_by_detector: Mapping[str, DetectorCells]
+) -> list[DetectorCells]:
     """The cells in benchmark.detectors order: one per detector params list, no other."""
     detectors = list(params.benchmark.detectors)
     missing = [d for d in detectors if d not in cells_by_detector]
@@ -266,111 +242,10 @@ def _ordered(params: Params, cells_by_detector: Mapping[str, DetectorCells]) -> 
     return [cells_by_detector[d] for d in detectors]
 
 
-def merge_results(params: Params, cells: list[DetectorCells]) -> Results:
-    """`compute_results`' assembly of the per-detector parts (cells in detector order)."""
-    from oodrl.metrics.results import nominal_false_alarms
-
-    detectors = params.benchmark.detectors
-    records: list[ResultRecord] = []
-    sweep: dict[str, dict[float, dict[str, Summary]]] = {i: {} for i in params.benchmark.injectors}
-    modes: dict[str, str] = {}
-    for part in cells:
-        records.extend(part.records)
-        modes.update(part.modes)
-        for (injector, severity), summary in part.sweep.items():
-            sweep[injector].setdefault(severity, {})[part.detector] = summary
-    records.sort(key=lambda r: (r.kind, r.detector, r.injector or "", r.mode))
-    uncertified = sorted(d for d in detectors if not params.detector(d).machine_independent)
-    return Results(records, modes, sweep, nominal_false_alarms(params), uncertified)
-
-
-def merge_tier_results(
-    params: Params, cells: list[DetectorCells], impact_dir: Path
-) -> dict[str, Any]:
-    """`compute_tier_results`' assembly of the per-detector records (cells in detector order)."""
-    from oodrl.metrics.stamp import protocol_stamp
-    from oodrl.metrics.tiers import (
-        _false_alarm_audit,
-        _impact_summary,
-        _minimum_detectable_impact,
-    )
-    from oodrl.protocol.tiers import impact_path, read_impact
-
-    impacts = {f: read_impact(impact_path(impact_dir, f), f) for f in params.benchmark.injectors}
-    records = sorted(
-        (r for part in cells for r in part.tier_records),
-        key=lambda r: (r["detector"], r["injector"], r["severity"]),
-    )
-    return {
-        **protocol_stamp(params),
-        "alpha": params.tiers.alpha,
-        "k": params.tiers.k,
-        "false_alarm_audit": _false_alarm_audit(records),
-        "records": records,
-        "impact": {fault: _impact_summary(doc) for fault, doc in impacts.items()},
-        "minimum_detectable_impact": _minimum_detectable_impact(records, impacts, params.tiers.k),
-    }
-
-
-def merge_cells(
-    params: Params, cells_by_detector: Mapping[str, DetectorCells], impact_dir: Path
-) -> MergedOutputs:
-    """Every detector's cells (detector -> cells, exactly benchmark.detectors) assembled into
-    what `compute_results` and `compute_tier_results` return on the same scores."""
-    cells = _ordered(params, cells_by_detector)
-    return MergedOutputs(
-        merge_results(params, cells), merge_tier_results(params, cells, Path(impact_dir))
-    )
-
-
-def write_metrics_outputs(
-    params: Params,
-    results: Results,
-    results_path: Path,
-    sweep_path: Path,
-    metrics_path: Path,
-    tables_path: Path,
-) -> None:
-    """Write what `run_metrics` writes, from its computed `Results` (the same calls as there:
-    `run_metrics` computes and writes in one function, so its write half is repeated here)."""
-    from oodrl.io import yamlio
-    from oodrl.io.fileio import atomic_write_text
-    from oodrl.metrics.stamp import protocol_stamp
-    from oodrl.report.tables import metrics_json, render_tables
-
-    stamp = protocol_stamp(params)
-    document = {**stamp, **results.results_document()}
-    sweep = {**stamp, **results.sweep_document()}
-    atomic_write_text(results_path, yamlio.dump(document))
-    atomic_write_text(sweep_path, yamlio.dump(sweep))
-    atomic_write_text(
-        metrics_path, json.dumps(metrics_json(document), indent=2, sort_keys=True) + "\n"
-    )
-    atomic_write_text(tables_path, render_tables(document, sweep))
-
-
-def write_tier_outputs(
-    params: Params, document: Mapping[str, Any], impact_dir: Path, results_path: Path,
-    report_dir: Path,
-) -> None:  # fmt: skip
-    """Write what `run_tier_metrics` writes, from tier_results.yaml's content (the same calls
-    as there: `run_tier_metrics` computes and writes in one function)."""
-    from oodrl.io import yamlio
-    from oodrl.io.fileio import atomic_write_text
-    from oodrl.metrics.tiers import impact_document, tier_tables
-    from oodrl.report.impact import plot_impact_curves
-
-    impact = impact_document(params, Path(impact_dir))
-    atomic_write_text(results_path, yamlio.dump(document))
-    Path(report_dir).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(Path(report_dir) / "tables.md", tier_tables(document, impact))
-    plot_impact_curves(impact, Path(report_dir) / "impact_curves.png")
-
-
-def read_and_merge(params: Params, cells_dir: Path, impact_dir: Path) -> MergedOutputs:
-    """`merge_cells` of the files `cells_dir/<detector>.json` of every benchmark detector."""
+def read_all_cells(params: Params, cells_dir: Path) -> list[DetectorCells]:
+    """The cells files `cells_dir/<detector>.json` of exactly benchmark.detectors, in its order."""
     cells = {d: read_cells(cells_path(cells_dir, d)) for d in params.benchmark.detectors}
-    return merge_cells(params, cells, impact_dir)
+    return ordered_cells(params, cells)
 
 
 def cells_path(cells_dir: Path, detector: str) -> Path:

@@ -28,15 +28,24 @@ P(improvement)). A task with one run cannot resample runs: it resamples its epis
 every detector of the task with the same episodes (they are paired: same episodes, same
 seeds), as the suite's leaderboard did before policies had seeds. `Aggregate.bootstrap` says
 which one a table used. Task number c (in sorted order) draws from `default_rng([seed, c])`.
+
+The time-aware per-stream rule's detections (`time_aware_detection_rate@K`, SPEC §24) are not
+ranked: `build_board` compares them per tier with `detection_rate@K` on the same streams, over
+the cells that hold both (`rule_changes`, `oodrl.metrics.rule_change`; `Board.rule_change`).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, NamedTuple
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import numpy as np
+
+from oodrl.metrics.aggregate import interquartile_mean
+
+if TYPE_CHECKING:
+    from oodrl.metrics.rule_change import RuleChange
 
 
 class Cell(NamedTuple):
@@ -85,6 +94,20 @@ TRIVIAL_THRESHOLD = 0.9
 FLOOR_DETECTOR = "random_scores"
 #: The metric every results file holds per episode.
 MATCHED_AUROC = "matched_auroc"
+#: What names a record's per-stream detections under the time-aware rule (SPEC §24) beside the
+#: constant rule's `detection_rate@K`: `time_aware_detection_rate@K` (`time_aware_metric`).
+TIME_AWARE_PREFIX = "time_aware_"
+
+
+def time_aware_metric(metric: str) -> str:
+    """The per-episode values of `metric` (a `detection_rate@K`) under the time-aware rule."""
+    return TIME_AWARE_PREFIX + metric
+
+
+def constant_metric(metric: str) -> str | None:
+    """The constant rule's metric whose time-aware values `metric` holds; None for a metric of
+    its own."""
+    return metric.removeprefix(TIME_AWARE_PREFIX) if metric.startswith(TIME_AWARE_PREFIX) else None
 
 
 def fault_family(fault: str) -> str:
@@ -160,13 +183,6 @@ class Aggregate:
     def ranked(self) -> list[str]:
         """Detectors by IQM, best first (ties by name)."""
         return sorted(self.detectors, key=lambda d: (-self.iqm[d].value, d))
-
-
-def interquartile_mean(values: np.ndarray, axis: int | None = -1) -> np.ndarray:
-    """The mean of the middle 50% (25% trimmed from each end), as scipy's trim_mean."""
-    from scipy.stats import trim_mean
-
-    return trim_mean(values, 0.25, axis=axis)
 
 
 def _mann_whitney(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -434,6 +450,9 @@ class Board:
     #: (metric, tier) → the aggregates over the cells where more detectors run than on every
     #: cell (`detector_scopes`); empty where every cell has the same detectors.
     scoped: dict[tuple[str, str], tuple[Aggregate, ...]] = field(default_factory=dict)
+    #: (metric, tier) → what the time-aware rule changes of `metric` on that tier's cells that
+    #: hold both rules (`rule_changes`); empty where no record holds the time-aware rule.
+    rule_change: dict[tuple[str, str], RuleChanges] = field(default_factory=dict)
 
     def order(self) -> list[tuple[str, str]]:
         """Every (metric, tier) aggregated: tiers mild first, within one `detection_rate@K`
@@ -446,6 +465,55 @@ class Board:
     def lead(self) -> tuple[str, str]:
         """The (metric, tier) the leaderboard leads with: the first of `order`."""
         return self.order()[0]
+
+
+@dataclass(frozen=True)
+class RuleChanges:
+    """What the time-aware rule changes of a detection rate on one tier (SPEC §24;
+    `oodrl.metrics.rule_change`): over the cells whose records hold both rules, per scope of
+    detectors (`detector_scopes`: the detectors every such cell has, then each larger set)
+    the paired comparison, with the environments of its cells."""
+
+    #: The cells of the tier with both rules, and all the tier's cells of the metric.
+    n_cells: int
+    n_tier_cells: int
+    #: (environments, comparison) per scope, the scope of every cell first.
+    scopes: tuple[tuple[tuple[str, ...], RuleChange], ...]
+
+    @property
+    def detectors(self) -> list[str]:
+        """Every detector compared, those of every cell first, then the others by name."""
+        first = list(self.scopes[0][1].detectors)
+        rest = {d for _, change in self.scopes[1:] for d in change.detectors} - set(first)
+        return first + sorted(rest)
+
+    def of(self, detector: str) -> tuple[tuple[str, ...], RuleChange]:
+        """(environments, comparison) of the first scope that compares `detector`: over every
+        cell where it runs."""
+        return next((e, c) for e, c in self.scopes if detector in c.detectors)
+
+
+def rule_changes(
+    constant: CellValues, time_aware: CellValues, *, n_boot: int = 1000, ci: float = 0.95,
+    seed: int = 0,
+) -> RuleChanges | None:  # fmt: skip
+    """The time-aware rule against the constant one on one tier's cells (`constant`: every cell
+    of the tier; `time_aware`: the cells whose records hold the time-aware rule): over the cells
+    where every detector of the cell has both (results of protocol 3 hold one rule: not in it),
+    per scope of detectors. None when no cell has both."""
+    from oodrl.metrics.rule_change import rule_change
+
+    both = {
+        Cell(*c): v for c, v in constant.items() if c in time_aware and set(time_aware[c]) == set(v)
+    }
+    if not both:
+        return None
+    scopes = []
+    for scope in detector_scopes(both):
+        paired = {c: {d: time_aware[c][d] for d in v} for c, v in scope.items()}
+        environments = tuple(sorted({c.environment for c in scope}))
+        scopes.append((environments, rule_change(scope, paired, n_boot=n_boot, ci=ci, seed=seed)))
+    return RuleChanges(len(both), len(constant), tuple(scopes))
 
 
 def detector_scopes(cells: CellValues) -> list[dict[Cell, Mapping[str, Sequence[float]]]]:
@@ -485,6 +553,16 @@ def build_board(
     """
     if not cells_by_metric or not any(cells_by_metric.values()):
         raise ValueError("no cells to aggregate")
+    # The time-aware rule's detections are not ranked: they are compared with the constant
+    # rule's on the same streams (`Board.rule_change`, SPEC §24).
+    time_aware = {
+        constant: cells_by_metric[metric]
+        for metric in cells_by_metric
+        if (constant := constant_metric(metric)) is not None and constant in cells_by_metric
+    }
+    cells_by_metric = {m: v for m, v in cells_by_metric.items() if constant_metric(m) is None}
+    if not any(cells_by_metric.values()):
+        raise ValueError("no cells to aggregate")
     metrics = tuple(metric_order(cells_by_metric))
     tiers = tuple(tier_order(Cell(*c).tier for m in metrics for c in cells_by_metric[m]))
     if flagged is None:
@@ -518,4 +596,15 @@ def build_board(
             }
             if kept and len(kept) < len(cells):
                 unflagged[key] = aggregate(kept, **options)
-    return Board(metrics, tiers, overall, families, stability, flagged, unflagged, scoped)
+    changes = {}
+    for metric, paired in time_aware.items():
+        for tier in tiers:
+            of_tier = {
+                Cell(*c): v for c, v in cells_by_metric[metric].items() if Cell(*c).tier == tier
+            }
+            change = of_tier and rule_changes(
+                of_tier, {Cell(*c): v for c, v in paired.items()}, n_boot=n_boot, ci=ci, seed=seed
+            )
+            if change:
+                changes[(metric, tier)] = change
+    return Board(metrics, tiers, overall, families, stability, flagged, unflagged, scoped, changes)

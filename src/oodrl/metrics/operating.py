@@ -328,3 +328,12 @@ def calibration_maxima(detector: Any, trajectories: Sequence[Any]) -> np.ndarray
     """The per-stream score maxima of a fitted detector on held-out clean trajectories (in the
     pipeline: the ID set's calibration split, as `oodrl.stages.fit` calibrates on it)."""
     return np.array([output.scores.max() for output in detector.score_many(trajectories)])
+
+
+def per_stream_detections(
+    faulty: np.ndarray, threshold: float, onset: int, k: int, latency: int
+) -> np.ndarray:
+    """1.0 per faulty stream whose first alarm is raised in [t*, t* + K] within the stream."""
+    raised = first_raise(faulty >= threshold, latency)
+    detected = (raised >= onset) & (raised <= onset + k) & (raised < faulty.shape[1])
+    return detected.astype(np.float64)

@@ -171,10 +171,10 @@ def _detector_results(params: Params, scores_dir: Path, detector: str):
     records, sweep, modes = [], {}, {}
     for injector in params.benchmark.injectors:
         path = score_store(scores_dir, detector, injector)
-        groups, attrs = read_scores(path, stage=detector_stage(detector, "score", injector))
+        groups, attrs = read_scores(path, stage=detector_stage(detector, "score"))
         sweep_path = sweep_score_store(scores_dir, detector, injector)
         sweep_groups, sweep_attrs = read_scores(
-            sweep_path, stage=detector_stage(detector, "score", injector)
+            sweep_path, stage=detector_stage(detector, "score_variants")
         )
         spec, modes[injector] = attrs["spec"], attrs["mode"]
         headline, episodes = _summary(
@@ -198,7 +198,9 @@ def _detector_results(params: Params, scores_dir: Path, detector: str):
 
 
 def compute_results(params: Params, scores_dir: Path) -> Results:
-    """Every (detector, anomaly) headline record, the null baselines, and the sweep.
+    """Every (detector, anomaly) headline record, the null baselines, and the sweep, of every
+    benchmark detector's scores in `scores_dir` (the pipeline computes each detector's part in a
+    stage of its own, `oodrl.metrics.cells`, and merges them with `assemble_results`).
 
     Detectors are summarised in parallel (executor.workers); each summary is seeded alone,
     so the results do not depend on the worker count. The clean evaluation set is the
@@ -210,12 +212,19 @@ def compute_results(params: Params, scores_dir: Path) -> Results:
         jobs = [(params, scores_dir, detector) for detector in detectors]
         workers = params.executor.resolved_workers
         parts = ordered_map(_detector_results, jobs, workers, on_done=lambda _: bar.update())
+    return assemble_results(params, list(zip(detectors, parts, strict=True)))
+
+
+def assemble_results(params: Params, parts: list[tuple[str, tuple[list, dict, dict]]]) -> Results:
+    """The results of every detector's part — (detector, (records, sweep, modes)) as
+    `_detector_results` returns them, in benchmark.detectors order: the records sorted, the
+    injectors' modes, the sweep by injector, severity (as the first detector lists it), then
+    detector."""
+    detectors = params.benchmark.detectors
     records: list[ResultRecord] = []
     sweep: dict[str, dict[float, dict[str, Summary]]] = {i: {} for i in params.benchmark.injectors}
     modes: dict[str, str] = {}
-    for detector, (detector_records, detector_sweep, detector_modes) in zip(
-        detectors, parts, strict=True
-    ):
+    for detector, (detector_records, detector_sweep, detector_modes) in parts:
         records.extend(detector_records)
         modes.update(detector_modes)
         for (injector, severity), summary in detector_sweep.items():

@@ -18,18 +18,28 @@ Per detector (`rule_change`, for one tier; `rule_change_by_tier` splits by the c
   `bootstrap.bootstrap_indices` seeded with [seed, c], as the leaderboard's tasks do;
 - the detectors whose CI excludes 0 (`changed`);
 - Kendall's τ between the detectors' IQMs of cell rates under the two rules
-  (`leaderboard.interquartile_mean`, scipy's τ-b): 1 when the rule leaves the ranking alone.
+  (`aggregate.interquartile_mean`, scipy's τ-b): 1 when the rule leaves the ranking alone.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from oodrl.metrics.aggregate import interquartile_mean
 from oodrl.metrics.bootstrap import bootstrap_indices
-from oodrl.metrics.leaderboard import Cell, CellValues, interquartile_mean
+
+#: The leaderboard's cells of per-stream values (`oodrl.metrics.leaderboard.CellValues`, not
+#: imported: the leaderboard imports this module): {cell: {detector: per-stream values}}, a cell
+#: a `leaderboard.Cell` or the tuple (environment, policy, fault, tier).
+CellValues = Mapping[Any, Mapping[str, Sequence[float]]]
+
+
+def _tier(cell: Sequence[str]) -> str:
+    return cell[3]  # leaderboard.Cell's `tier`
 
 
 @dataclass(frozen=True)
@@ -129,14 +139,14 @@ def rule_change(
 def rule_change_by_tier(
     constant: CellValues, time_aware: CellValues, **kwargs: Any
 ) -> dict[str, RuleChange]:
-    """`rule_change` per tier of the cells (`Cell.tier`), tiers in sorted order."""
+    """`rule_change` per tier of the cells (a cell's `tier`), tiers in sorted order."""
     if set(constant) != set(time_aware):
         raise ValueError("both rules need the same set of cells")
-    tiers = sorted({Cell(*cell).tier for cell in constant})
+    tiers = sorted({_tier(cell) for cell in constant})
     return {
         tier: rule_change(
             *(
-                {c: v for c, v in rule.items() if Cell(*c).tier == tier}
+                {c: v for c, v in rule.items() if _tier(c) == tier}
                 for rule in (constant, time_aware)
             ),
             **kwargs,

@@ -17,9 +17,12 @@ if TYPE_CHECKING:
 
 #: The protocol a results file follows: 2 = SPEC §15/§16 (impact tiers, operating points,
 #: policy seeds, trivial-signal baselines); 3 = SPEC §19 (tiers searched and verified, the
-#: benign tier, 100-stream cells, the training-conditional threshold, the audit set). Bump it
-#: whenever results stop being comparable with the previous version's.
-PROTOCOL_VERSION = 3
+#: benign tier, 100-stream cells, the training-conditional threshold, the audit set); 4 = SPEC
+#: §23/§24 (per-detector cells merged, tiers searched with common random numbers and planned
+#: verification, the time-aware per-stream rule beside the constant one, cusum_tv and
+#: action_consistency). Bump it whenever results stop being comparable with the previous
+#: version's.
+PROTOCOL_VERSION = 4
 #: What a results file without a stamp is read as: the protocol before stamps, SPEC §3-§12.
 UNSTAMPED_VERSION = 1
 

@@ -51,6 +51,7 @@ from oodrl.metrics.operating import (
     _rounded,
     first_raise,
     operating_point,
+    per_stream_detections,
     per_stream_threshold,
 )
 
@@ -205,10 +206,8 @@ def stream_detections(
 ) -> np.ndarray:
     """1.0 per faulty stream whose first alarm is raised in [t*, t* + K] within the stream: the
     tier results' per-stream `detection_rate@K`, under either rule."""
-    from oodrl.metrics.tiers import _per_stream_detections
-
     z = rule_scores(np.atleast_2d(faulty), standardiser)
-    return _per_stream_detections(z, threshold, onset, k, latency)
+    return per_stream_detections(z, threshold, onset, k, latency)
 
 
 def rule_operating_point(
@@ -224,6 +223,16 @@ def rule_operating_point(
     faulty = rule_scores(np.atleast_2d(faulty_scores), standardiser)
     clean = rule_scores(np.atleast_2d(clean_scores), standardiser)
     return operating_point(faulty, clean, threshold, onset, **kwargs)
+
+
+def point_record(point: OperatingPoint) -> dict[str, Any]:
+    """`OperatingPoint.as_dict` with the delay's mean beside its median and 90th percentile over
+    the streams detected within K, all three shown from `MIN_DELAY_COUNT` (5) such streams on
+    and None below (SPEC §19, §24); their count always."""
+    record = point.as_dict()
+    shown = record["delay"]["median"] is not None  # from MIN_DELAY_COUNT detected streams
+    record["delay"]["mean"] = _rounded(np.mean(point.delays)) if shown else None
+    return record
 
 
 def alpha_curve(
@@ -267,10 +276,8 @@ def alpha_curve(
             faulty_scores, audit_scores, threshold, onset, standardiser,
             alpha=alpha, k=k, latency=latency, curve_ks=(), confidence=confidence,
         )  # fmt: skip
-        record = point.as_dict()
+        record = point_record(point)
         del record["detection_curve"]
-        shown = record["delay"]["median"] is not None  # from MIN_DELAY_COUNT detected streams
-        record["delay"]["mean"] = _rounded(np.mean(point.delays)) if shown else None
         records.append(
             {**head, "supported": True, **record, "early_false_alarms": point.early_false_alarms}
         )

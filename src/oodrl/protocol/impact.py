@@ -14,7 +14,9 @@ Seeds, never the protocol's (ID `seed + i`, evaluation `seed + 10000 + j`, polic
 `seed + POLICY_SEED_OFFSET + j`, the random policy's from `seed + RANDOM_SEED_OFFSET + j`,
 j < n_episodes. The clean run and every severity share π's seeds (common random numbers):
 differences along the curve are the fault's, not the start states'. The fault of stream j
-draws from `injector_rng(seed, name, j)`.
+draws from `injector_rng(seed, name, j)`. The tier search and its verification have blocks of
+their own (`oodrl.protocol.tier_search`); π's clean returns on all of them are measured once per
+(environment, policy) by `tier_search.measure_reference` (the impact_reference stage).
 
 Noise and non-monotone estimates: the point estimates R̃(σ) (with the exact anchor R̃(0) = 1,
 since severity 0 reproduces the clean episodes) are fitted by an isotonic, monotone
@@ -38,25 +40,28 @@ level, if that step does not also fall past the level where the next tier begins
 SEVERE_FLOOR for `severe`); otherwise no step lands in the tier and it is unreachable. Reading
 such a curve linearly would name severities, between σ = 0 and the first step, that give the
 first step's fault with the first step's impact.
+
+Tiers (`oodrl.protocol.tier_search.calibrate_impact`, SPEC §19, §23). The tiers read on the
+coarse curve are where a tier search starts, never a tier: a continuous fault's tiers are
+searched for and verified by protocol 4's search (`oodrl.protocol.tier_search.search_fault`,
+common random numbers, a monotone fit of every probe, planned verification), the coarse curve
+guiding its probes; a
+stepped fault's tiers are its steps, verified the same way (`verify_steps`). Each tier carries
+its verification (R̃ re-measured on fresh seeds, with its CI and episodes) and each fault the
+probes its search made.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from oodrl.config import (
-    POLICY_SEED_OFFSET,
-    RANDOM_SEED_OFFSET,
-    SEARCH_SEED_OFFSET,
-    VERIFY_SEED_OFFSET,
-    TierSearchConfig,
-)
+from oodrl.config import POLICY_SEED_OFFSET, RANDOM_SEED_OFFSET
 from oodrl.core.adapter import EnvironmentAdapter
 from oodrl.core.injector import OnlineInjector
 from oodrl.core.policy import Policy
@@ -280,14 +285,27 @@ def tier_severities(
     if not stepped:
         return {name: first_crossing(severities, monotone, lvl) for name, lvl in levels.items()}
     ys = np.asarray(monotone, dtype=np.float64)
-    descending = sorted(levels.values(), reverse=True)
     tiers: dict[str, float | None] = {}
     for name, level in levels.items():
         below = np.flatnonzero(ys <= level)
-        later = [lvl for lvl in descending if lvl < level]
-        floor = later[0] if later else SEVERE_FLOOR
+        floor = _tier_floor(name, levels)
         tiers[name] = float(severities[below[0]]) if below.size and ys[below[0]] >= floor else None
     return tiers
+
+
+def _tier_floor(name: str, levels: Mapping[str, float] = LEVELS) -> float:
+    """Where a stepped fault's tier ends: the next tier's level, SEVERE_FLOOR after the last."""
+    later = [lvl for lvl in sorted(levels.values(), reverse=True) if lvl < levels[name]]
+    return later[0] if later else SEVERE_FLOOR
+
+
+def tier_severity(tier: Mapping[str, Any]) -> float | None:
+    """A tier record's severity; None when it has none: "unreachable", or "not reached" (a
+    search whose probes ran out before its fit fell to the level)."""
+    value = tier.get("severity")
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return None
+    return float(value)
 
 
 def _normalised(faulty_mean, clean_mean, random_mean):
@@ -308,8 +326,8 @@ def impact_record(
     stepped: bool = False,
 ) -> dict[str, Any]:
     """The coarse impact curve (raw and monotone, with bootstrap CIs) and the tiers read on it
-    (where the search starts, `searched_tiers`), as YAML holds it; `stepped`: the severities
-    are a stepped fault's steps (module docstring)."""
+    (where the tier search starts, `tier_search.calibrate_impact`), as YAML holds it;
+    `stepped`: the severities are a stepped fault's steps (module docstring)."""
     severities = sorted(returns.faulty)
     if not severities or severities[0] <= 0:
         raise ConfigError(f"The severity grid must be positive severities; got {severities}.")
@@ -334,7 +352,8 @@ def impact_record(
     ).T
     tail = (1 - ci) / 2
     low, high = np.quantile(replicates, [tail, 1 - tail], axis=0)
-    # The coarse read: where the tier search starts (`searched_tiers`), never a tier itself.
+    # The coarse read: where the tier search starts (`tier_search.calibrate_impact`), never a
+    # tier itself.
     tiers = {
         name: {"level": levels[name], "severity": _rounded(value)}
         for name, value in tier_severities(xs, monotone, levels, stepped).items()
@@ -384,56 +403,6 @@ class Reference:
             np.asarray(document["random"], dtype=np.float64),
             str(document["policy_sha256"]),
         )
-
-
-def search_seeds(seed: int, search: TierSearchConfig, tier_index: int, probe: int) -> list[int]:
-    """The fresh reset seeds of one probe of the tier search: probe p of the i-th tier."""
-    first = (
-        seed
-        + SEARCH_SEED_OFFSET
-        + (tier_index * search.max_probes + probe) * (search.probe_episodes)
-    )
-    return list(range(first, first + search.probe_episodes))
-
-
-def verify_seeds(seed: int, search: TierSearchConfig) -> list[int]:
-    """The held-out reset seeds of every tier's verification (no probe ever uses them)."""
-    first = seed + VERIFY_SEED_OFFSET
-    return list(range(first, first + search.verify_episodes))
-
-
-def reference_seeds(seed: int, n_episodes: int, search: TierSearchConfig) -> list[int]:
-    """Every reset seed whose clean return an impact stage reads: the coarse curve's, every
-    probe's that any tier may run, and the verification's."""
-    probes = [
-        s
-        for tier_index in range(len(LEVELS))
-        for probe in range(search.max_probes)
-        for s in search_seeds(seed, search, tier_index, probe)
-    ]
-    return [*policy_seeds(seed, n_episodes), *probes, *verify_seeds(seed, search)]
-
-
-def measure_reference(
-    adapter: EnvironmentAdapter,
-    policy: Policy,
-    n_episodes: int,
-    search: TierSearchConfig,
-    *,
-    seed: int,
-    horizon: int,
-    workers: int = 1,
-) -> Reference:
-    """π's clean returns on every seed of `reference_seeds` (one collection) and the random
-    policy's on `n_episodes` seeds of its own."""
-    seeds = reference_seeds(seed, n_episodes, search)
-    clean = clean_returns(
-        adapter, policy, len(seeds), seed=seed, horizon=horizon, workers=workers, seeds=seeds
-    )
-    random = random_policy_returns(adapter, n_episodes, seed=seed, horizon=horizon)
-    return Reference(
-        {s: float(r) for s, r in zip(seeds, clean, strict=True)}, random, policy.sha256
-    )
 
 
 @dataclass(frozen=True)
@@ -488,112 +457,6 @@ def tier_tolerance(level: float, tolerance: float) -> float:
     the tier's loss 1 − level, so that no tolerance admits a severity that costs nothing (for
     `benign`, 0.005: R̃ = 1.0 is never within it)."""
     return min(tolerance, (1.0 - level) / 2)
-
-
-def _on_target(estimate: Estimate, level: float, tolerance: float) -> bool:
-    return abs(estimate.normalised - level) <= tier_tolerance(level, tolerance)
-
-
-def _verified(estimate: Estimate, level: float, floor: float, tolerance: float, stepped: bool):
-    """A continuous tier's verification holds when R̃ there is within the tolerance of its
-    level (`tier_tolerance`) or its CI covers the level; a stepped tier's, when its CI meets the
-    tier's band [the next tier's level (SEVERE_FLOOR after severe), its own level] widened by
-    the tolerance."""
-    low, high = estimate.ci
-    if stepped:
-        widen = tier_tolerance(level, tolerance)
-        return bool(low <= level + widen and high >= floor - widen)
-    return bool(_on_target(estimate, level, tolerance) or low <= level <= high)
-
-
-def search_tier(
-    level: float,
-    xs: Sequence[float],
-    monotone: Sequence[float],
-    measure: Callable[[float, int], Estimate],
-    search: TierSearchConfig,
-) -> tuple[float | None, list[Estimate], bool]:
-    """The severity of one tier of a continuous fault (SPEC §19): bracket the level on the
-    coarse monotone curve (σ = 0, R̃ = 1 included, so a level crossed before the first grid
-    point is bracketed by [0, first point]), then probe inside the bracket by safeguarded
-    regula falsi (the probe lands between 10% and 90% of the bracket), each probe measured on
-    fresh episodes (`measure(σ, probe index)`), narrowing the bracket on the side the probe
-    falls, until a probe's R̃ is within the tolerance of the level (`tier_tolerance`) or the
-    probes run out.
-
-    Returns (σ, probes, converged): σ is a probed severity, where R̃ was measured (the first
-    on target, else the closest to the level); None when the curve never reaches the level.
-    """
-    xs, ys = np.asarray(xs, dtype=np.float64), np.asarray(monotone, dtype=np.float64)
-    below = np.flatnonzero(ys <= level)
-    if below.size == 0:
-        return None, [], False
-    i = max(int(below[0]), 1)
-    lo, y_lo, hi, y_hi = xs[i - 1], ys[i - 1], xs[i], ys[i]
-    probes: list[Estimate] = []
-    for probe in range(search.max_probes):
-        fraction = (y_lo - level) / (y_lo - y_hi) if y_lo > y_hi else 0.5
-        severity = round(float(lo + min(max(fraction, 0.1), 0.9) * (hi - lo)), 6)
-        estimate = measure(severity, probe)
-        probes.append(estimate)
-        if _on_target(estimate, level, search.tolerance):
-            return severity, probes, True
-        if estimate.normalised > level:
-            lo, y_lo = severity, min(estimate.normalised, y_lo)
-        else:
-            hi, y_hi = severity, max(estimate.normalised, y_hi)
-    closest = min(probes, key=lambda e: (abs(e.normalised - level), e.severity))
-    return closest.severity, probes, False
-
-
-def _tier_floor(name: str, levels: Mapping[str, float]) -> float:
-    later = [lvl for lvl in sorted(levels.values(), reverse=True) if lvl < levels[name]]
-    return later[0] if later else SEVERE_FLOOR
-
-
-def searched_tiers(
-    coarse: Mapping[str, Any],
-    xs: Sequence[float],
-    monotone: Sequence[float],
-    measure: Callable[[float, Sequence[int]], Estimate],
-    search: TierSearchConfig,
-    *,
-    seed: int,
-    stepped: bool,
-    levels: Mapping[str, float] = LEVELS,
-) -> dict[str, Any]:
-    """Every tier of one fault, measured where it is read (SPEC §19), with its verification.
-
-    A continuous fault's tier comes from `search_tier`; a stepped fault's is the step its
-    coarse curve gives (`coarse`: `tier_severities` on the monotone curve), since every σ of a
-    step is the same fault. Either is then re-measured on the held-out verification seeds;
-    `verified` says whether that measurement agrees with the tier (`_verified`)."""
-    tiers: dict[str, Any] = {}
-    for index, (name, level) in enumerate(levels.items()):
-        record: dict[str, Any] = {"level": level}
-        if stepped:
-            severity, probes, converged = coarse[name], [], None
-        else:
-            severity, probes, converged = search_tier(
-                level, xs, monotone,
-                lambda s, p, index=index: measure(s, search_seeds(seed, search, index, p)),
-                search,
-            )  # fmt: skip
-        record["severity"] = _rounded(severity)
-        if severity is not None:
-            verification = measure(severity, verify_seeds(seed, search))
-            floor = _tier_floor(name, levels)
-            record["verification"] = {
-                **verification.as_dict(),
-                "verified": _verified(verification, level, floor, search.tolerance, stepped),
-            }
-            if not stepped:
-                record["search"] = {
-                    "converged": converged,
-                    "probes": [p.as_dict() for p in probes],
-                }
-        tiers[name] = record
-    return tiers
 
 
 def minimum_detectable_impact(
@@ -675,102 +538,3 @@ def sweep_metric(sweep: Mapping[str, Any], metric: str = "matched_auroc"):
                 value = summary[metric]["mean"]
                 out.setdefault(fault, {}).setdefault(detector, {})[float(severity)] = value
     return out
-
-
-def calibrate_impact(
-    adapter: EnvironmentAdapter,
-    policy: Policy,
-    injectors: Mapping[str, OnlineInjector],
-    severities: Sequence[float],
-    n_episodes: int,
-    *,
-    search: TierSearchConfig | None = None,
-    reference: Reference | None = None,
-    seed: int = 0,
-    horizon: int | None = None,
-    n_boot: int = 1000,
-    ci: float = 0.95,
-    workers: int = 1,
-) -> dict[str, Any]:
-    """The impact document of one (environment, policy): every fault's coarse curve and its
-    tiers, each searched for and verified (SPEC §19). `reference`: π's clean returns on every
-    seed used and the random policy's (`measure_reference`; measured here when not given)."""
-    if n_episodes < 2:
-        raise ConfigError(f"Impact calibration needs n_episodes >= 2; got {n_episodes}.")
-    search = search or TierSearchConfig()
-    horizon = horizon or episode_limit(adapter)
-    if reference is None:
-        reference = measure_reference(
-            adapter, policy, n_episodes, search, seed=seed, horizon=horizon, workers=workers
-        )
-    if reference.policy_sha256 != policy.sha256:
-        raise ContractError(
-            f"The impact reference was measured with policy {reference.policy_sha256[:12]}, "
-            f"not this one ({policy.sha256[:12]}); re-run its stage (impact_reference)."
-        )
-    missing = sorted(set(reference_seeds(seed, n_episodes, search)) - set(reference.clean))
-    if missing:
-        raise ContractError(
-            f"The impact reference holds no clean return of {len(missing)} seeds this search "
-            f"uses (first {missing[0]}); re-run its stage (impact_reference) with these params."
-        )
-    clean, random = reference.returns(policy_seeds(seed, n_episodes)), reference.random
-    faults = {}
-    for name in sorted(injectors):
-        injector = injectors[name]
-        steps = severity_steps(injector, adapter)
-        faulty = faulty_returns(
-            adapter, policy, injector, step_severities(steps) if steps else severities,
-            n_episodes, seed=seed, horizon=horizon, workers=workers,
-        )  # fmt: skip
-        record = impact_record(
-            Returns(clean, faulty, random), n_boot=n_boot, ci=ci, seed=seed, stepped=bool(steps)
-        )
-
-        def measure(severity: float, seeds: Sequence[int], injector=injector) -> Estimate:
-            returns = faulty_returns(
-                adapter, policy, injector, [severity], len(seeds), seed=seed, horizon=horizon,
-                workers=workers, seeds=seeds,
-            )[float(severity)]  # fmt: skip
-            return paired_estimate(
-                severity, returns, reference.returns(seeds), reference,
-                n_boot=n_boot, ci=ci, seed=seed,
-            )  # fmt: skip
-
-        xs, ys = impact_curve_points(record)
-        coarse = {
-            n: None if t["severity"] == UNREACHABLE else t["severity"]
-            for n, t in record["tiers"].items()
-        }
-        record["tiers"] = searched_tiers(
-            coarse, xs, ys, measure, search, seed=seed, stepped=bool(steps)
-        )
-        faults[name] = {
-            **record,
-            "mode": injector.mode,
-            "params": {k: v for k, v in sorted(injector.get_params().items()) if k != "severity"},
-            **({"severity_steps": steps} if steps else {}),
-        }
-    n = n_episodes
-    probes = reference_seeds(seed, n, search)[n : -search.verify_episodes]
-    verify = verify_seeds(seed, search)
-    return {
-        "env_id": adapter.env_id,
-        "policy_sha256": policy.sha256,
-        "levels": dict(LEVELS),
-        "horizon": horizon,
-        "n_episodes": n,
-        "n_boot": n_boot,
-        "ci": ci,
-        "seed": seed,
-        "search": search.model_dump(mode="json"),
-        "seeds": {
-            "policy": [seed + POLICY_SEED_OFFSET, seed + POLICY_SEED_OFFSET + n - 1],
-            "random": [seed + RANDOM_SEED_OFFSET, seed + RANDOM_SEED_OFFSET + n - 1],
-            "search": [probes[0], probes[-1]],
-            "verification": [verify[0], verify[-1]],
-        },
-        "clean_return": _rounded(clean.mean()),
-        "random_return": _rounded(random.mean()),
-        "faults": faults,
-    }

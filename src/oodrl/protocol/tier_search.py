@@ -1,11 +1,13 @@
-"""Protocol version 4's tier search (SPEC §19): common random numbers, a monotone fit of every
-probe, and planned verification. Not yet called by any stage; `oodrl.protocol.impact`'s
-`searched_tiers` (protocol 3) is what the impact stage runs.
+"""Protocol version 4's tier search (SPEC §19, §23): common random numbers, a monotone fit of
+every probe, and planned verification. The impact stage runs it
+(`calibrate_impact`, below): `search_fault` for a continuous fault, `verify_steps`
+for a stepped one.
 
-Why. Protocol 3 probes each tier on fresh seeds and stops at the first probe whose 50-episode
-R̃ lands within the tolerance of the level: stopping on a noisy estimate selects its luck (a
+Why. Protocol 3 probed each tier on fresh seeds and stopped at the first probe whose 50-episode
+R̃ landed within the tolerance of the level: stopping on a noisy estimate selects its luck (a
 fresh check found 4 of 9 verified tiers missing their level), and tiers searched apart need not
 come out ordered (on a bimodal-return agent, mild at a larger σ than moderate).
+benchmarks/tier_search_sim.py compares the two.
 
 The search (`search_fault`), for one continuous fault and every level of `levels`:
 
@@ -41,52 +43,77 @@ The search (`search_fault`), for one continuous fault and every level of `levels
   (in level order), then each further batch to the tier whose CI (the paired bootstrap over all
   its batches) is widest while its half-width exceeds `ci_target`, until every tier meets the
   target, `max_verify_batches` batches are spent, or the budget is. A tier is verified when its
-  CI meets level ± tolerance (`ci_meets_level`).
+  CI meets level ± tolerance (`ci_meets_level`). Its precision is that CI (SPEC §23).
 * Budget. At most `budget` impact episodes a fault, search and verification together (the
-  coarse curve, shared with protocol 3, not counted): with the defaults, 6 probes × 100 +
-  6 batches × 50 = 900, against protocol 3's 4 tiers × (4 probes × 50 + 100) = 1,200.
+  coarse curve not counted): with the defaults, 6 probes × 100 + 6 batches × 50 = 900, against
+  protocol 3's 4 tiers × (4 probes × 50 + 100) = 1,200.
 
-Seeds (same style as `search_seeds`/`verify_seeds`, other streams). The search's episodes reset
-from `seed + CRN_SEARCH_SEED_OFFSET + j`, j < search_episodes; tier i's verification batch b
-from `seed + CRN_VERIFY_SEED_OFFSET + (i · max_verify_batches + b) · verify_batch + j`,
-j < verify_batch. Both blocks lie in [seed + 900,000, seed + 1,000,000): clear of the policy's,
-random policy's, protocol 3's probes' and verifications' blocks (`oodrl.config`'s
-`*_SEED_OFFSET`, 100,000 seeds each), and of each other (`CrnSearchConfig` refuses sizes that
-would overflow a block). Every draw is a function of `seed` and the evaluator, so the search is
-deterministic given both.
+Stepped faults (`verify_steps`). A stepped fault's tier is a step, read on its coarse curve by
+`oodrl.protocol.impact.tier_severities` (every σ of a step is the same fault, so there is
+nothing to search); it is verified by the same planned verification, and verified when its CI
+meets the tier's band [the next tier's level (SEVERE_FLOOR after severe), its own level] widened
+by the tolerance.
 
-Continuous faults only: a stepped fault's tier is a step (`tier_severities`, stepped), which
-keeps protocol 3's rule.
+Settings: the params block `tiers.search` (`oodrl.config.TierSearchConfig`, whose
+`check_seed_blocks` refuses sizes that overflow a seed block or the budget) and the largest
+severity to probe (`CrnSearchConfig`).
+
+Seeds (`oodrl.config`'s `CRN_*` offsets, beside every other block). The search's episodes reset
+from `seed + CRN_SEARCH_SEED_OFFSET + j`, j < search_episodes; the fault's verification batch
+b (numbered over the fault, whichever tier it goes to) from `seed + CRN_VERIFY_SEED_OFFSET +
+b · verify_batch + j`, j < verify_batch: no two batches share a seed, and the clean reference
+holds max_verify_batches × verify_batch verification seeds (300 by default), not one block a
+tier. Both blocks lie in [seed + 900,000, seed + 1,000,000): clear of the policy's,
+random policy's and protocol 3's blocks (100,000 seeds each), and of each other. Every draw is a
+function of `seed` and the evaluator, so the search is deterministic given both.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from pydantic import Field
 
+from oodrl.config import (
+    CRN_SEARCH_SEED_OFFSET,
+    CRN_VERIFY_SEED_OFFSET,
+    POLICY_SEED_OFFSET,
+    RANDOM_SEED_OFFSET,
+    TierSearchConfig,
+)
+from oodrl.core.adapter import EnvironmentAdapter
+from oodrl.core.injector import OnlineInjector
+from oodrl.core.policy import Policy
 from oodrl.errors import ConfigError, ContractError
 from oodrl.protocol.impact import (
     LEVELS,
     Estimate,
     Reference,
+    Returns,
     _rounded,
+    _tier_floor,
+    clean_returns,
+    episode_limit,
+    faulty_returns,
     first_crossing,
+    impact_curve_points,
+    impact_record,
     monotone_curve,
     paired_estimate,
+    policy_seeds,
+    random_policy_returns,
+    severity_steps,
+    step_severities,
+    tier_severity,
     tier_tolerance,
 )
 
-#: How the record says it was searched (protocol 3's records have no `method`).
+#: How the record says its tiers were found (protocol 3's records have no `method`).
 METHOD = "common random numbers"
-#: The search's common episodes at seed + CRN_SEARCH_SEED_OFFSET + j; the verification batches
-#: at seed + CRN_VERIFY_SEED_OFFSET + … (module docstring). Both inside the block of 100,000
-#: seeds from seed + 900,000, which no other impact seed uses.
-CRN_SEARCH_SEED_OFFSET = 900_000
-CRN_VERIFY_SEED_OFFSET = 950_000
-_BLOCK_END = 1_000_000
+STEPPED_METHOD = "steps"
 #: A tier whose level the fit has not reached when the probes ran out short of `max_severity`
 #: (unlike UNREACHABLE, shown at `max_severity`).
 NOT_REACHED = "not reached"
@@ -95,95 +122,52 @@ NOT_REACHED = "not reached"
 FaultyReturns = Callable[[float, Sequence[int]], np.ndarray]
 
 
-@dataclass(frozen=True)
-class CrnSearchConfig:
-    """Protocol 4's tier search settings (module docstring). `tolerance` is the tiers' as in
-    `TierSearchConfig` (capped per tier by `tier_tolerance`); `ci_target` the verification CI's
-    half-width to reach; `budget` the most search + verification episodes a fault."""
+class CrnSearchConfig(TierSearchConfig):
+    """The search's settings: the params block `tiers.search` (`TierSearchConfig`: its keys,
+    defaults and ranges) and `max_severity`, the largest severity it probes (the impact stage's:
+    its coarse grid's largest)."""
 
-    search_episodes: int = 100
-    max_probes: int = 6
-    tolerance: float = 0.015
-    verify_batch: int = 50
-    max_verify_batches: int = 6
-    ci_target: float = 0.02
-    budget: int = 900
-    max_severity: float = 1.0
-    resolution: float = 1e-3
+    max_severity: float = Field(1.0, gt=0, le=1)
 
-    def __post_init__(self) -> None:
-        checks = [
-            (self.search_episodes >= 2, "search_episodes must be >= 2"),
-            (self.max_probes >= 1, "max_probes must be >= 1"),
-            (0 < self.tolerance < 1, "tolerance must be in (0, 1)"),
-            (self.verify_batch >= 2, "verify_batch must be >= 2"),
-            (self.max_verify_batches >= 1, "max_verify_batches must be >= 1"),
-            (self.ci_target > 0, "ci_target must be > 0"),
-            (0 < self.max_severity <= 1, "max_severity must be in (0, 1]"),
-            (self.resolution > 0, "resolution must be > 0"),
-            (
-                self.search_episodes <= CRN_VERIFY_SEED_OFFSET - CRN_SEARCH_SEED_OFFSET,
-                "search_episodes overflows the search's seed block",
-            ),
-        ]
-        for ok, message in checks:
-            if not ok:
-                raise ConfigError(f"Tier search (protocol 4): {message}; got {self}.")
-
-    def check_budget(self, n_tiers: int) -> None:
-        """Refuse settings whose verification seeds overflow their block, or whose budget
-        cannot give every tier one verification batch after the most probes."""
-        if n_tiers * self.max_verify_batches * self.verify_batch > _BLOCK_END - (
-            CRN_VERIFY_SEED_OFFSET
-        ):
-            raise ConfigError(
-                f"Tier search (protocol 4): {n_tiers} tiers × {self.max_verify_batches} batches "
-                f"× {self.verify_batch} episodes overflow the verification's seed block."
-            )
-        need = self.max_probes * self.search_episodes + n_tiers * self.verify_batch
-        if need > self.budget:
-            raise ConfigError(
-                f"Tier search (protocol 4): budget {self.budget} is below {need}, the most "
-                f"probes ({self.max_probes} × {self.search_episodes}) and one verification "
-                f"batch of {self.verify_batch} for each of {n_tiers} tiers."
-            )
+    @classmethod
+    def from_params(cls, search: TierSearchConfig, max_severity: float = 1.0) -> CrnSearchConfig:
+        """`search`'s settings, searched up to `max_severity`."""
+        return cls(**{**search.model_dump(), "max_severity": float(max_severity)})
 
 
-def crn_search_seeds(seed: int, config: CrnSearchConfig) -> list[int]:
+def crn_search_seeds(seed: int, config: TierSearchConfig) -> list[int]:
     """The reset seeds every probe of a fault's tier search shares (common random numbers)."""
     first = seed + CRN_SEARCH_SEED_OFFSET
     return list(range(first, first + config.search_episodes))
 
 
-def crn_verify_seeds(seed: int, config: CrnSearchConfig, tier_index: int, batch: int) -> list[int]:
-    """The fresh reset seeds of verification batch `batch` of the `tier_index`-th tier."""
-    first = (
-        seed
-        + CRN_VERIFY_SEED_OFFSET
-        + (tier_index * config.max_verify_batches + batch) * config.verify_batch
-    )
+def crn_verify_seeds(seed: int, config: TierSearchConfig, batch: int) -> list[int]:
+    """The fresh reset seeds of a fault's `batch`-th verification batch (numbered over the
+    fault, whichever tier it goes to: no two batches share a seed)."""
+    first = seed + CRN_VERIFY_SEED_OFFSET + batch * config.verify_batch
     return list(range(first, first + config.verify_batch))
 
 
-def crn_reference_seeds(
-    seed: int, config: CrnSearchConfig, levels: Mapping[str, float] = LEVELS
-) -> list[int]:
-    """Every reset seed whose clean return the search may read (the `Reference` must hold
-    them): the common search seeds, then every verification batch of every tier."""
+def crn_reference_seeds(seed: int, config: TierSearchConfig) -> list[int]:
+    """Every reset seed whose clean return the search or a verification may read (the
+    `Reference` must hold them, `measure_reference` measures them): the
+    common search seeds, then every verification batch a fault may spend."""
     verify = [
         s
-        for tier_index in range(len(levels))
         for batch in range(config.max_verify_batches)
-        for s in crn_verify_seeds(seed, config, tier_index, batch)
+        for s in crn_verify_seeds(seed, config, batch)
     ]
     return [*crn_search_seeds(seed, config), *verify]
 
 
-def ci_meets_level(estimate: Estimate, level: float, tolerance: float) -> bool:
-    """Whether the estimate's CI meets the band level ± `tier_tolerance(level, tolerance)`."""
+def ci_meets_level(
+    estimate: Estimate, level: float, tolerance: float, floor: float | None = None
+) -> bool:
+    """Whether the estimate's CI meets the band level ± `tier_tolerance(level, tolerance)`;
+    a stepped tier's band is [floor, level] (floor: the next tier's level) widened as much."""
     low, high = estimate.ci
     widen = tier_tolerance(level, tolerance)
-    return bool(low <= level + widen and high >= level - widen)
+    return bool(low <= level + widen and high >= (level if floor is None else floor) - widen)
 
 
 def half_width(estimate: Estimate) -> float:
@@ -312,14 +296,14 @@ def _plan(
 class TierResult:
     """One tier: its severity (None: the fit never falls to the level, `unreachable` when it
     was probed at `max_severity`, else not reached before the probes ran out), the bracket of
-    fitted points around it (upper end None: not crossed), whether the search resolved it (both
-    ends within the tolerance, a jump, or shown unreachable), and its verification (None if
-    not measured)."""
+    fitted points around it (upper end None: not crossed; no bracket: a stepped fault's step),
+    whether the search resolved it (both ends within the tolerance, a jump, or shown
+    unreachable), and its verification (None if not measured)."""
 
     name: str
     level: float
     severity: float | None
-    bracket: tuple[float, float | None]
+    bracket: tuple[float, float | None] | None
     resolved: bool
     unreachable: bool = False
     verification: Estimate | None = None
@@ -327,25 +311,26 @@ class TierResult:
     verified: bool = False
 
     def as_dict(self, ci_target: float) -> dict[str, Any]:
+        """The tier as impact.yaml holds it: level, severity (a number, "unreachable" or "not
+        reached"), the search's bracket, and the verification: R̃ there with its CI and
+        episodes, the batches, the CI's half-width against `ci_target`, and `verified`."""
         severity = _rounded(self.severity)
         if self.severity is None and not self.unreachable:
             severity = NOT_REACHED
-        lo, hi = self.bracket
-        record: dict[str, Any] = {
-            "level": self.level,
-            "severity": severity,
-            "search": {
+        record: dict[str, Any] = {"level": float(self.level), "severity": severity}
+        if self.bracket is not None:
+            lo, hi = self.bracket
+            record["search"] = {
                 "bracket": [_rounded(lo), None if hi is None else _rounded(hi)],
-                "resolved": self.resolved,
-            },
-        }
+                "resolved": bool(self.resolved),
+            }
         if self.verification is not None:
             record["verification"] = {
                 **self.verification.as_dict(),
-                "batches": self.batches,
+                "batches": int(self.batches),
                 "half_width": _rounded(half_width(self.verification)),
-                "ci_target_met": half_width(self.verification) <= ci_target,
-                "verified": self.verified,
+                "ci_target_met": bool(half_width(self.verification) <= ci_target),
+                "verified": bool(self.verified),
             }
         return record
 
@@ -353,14 +338,15 @@ class TierResult:
 @dataclass(frozen=True)
 class FaultTiers:
     """A fault's protocol-4 tiers: every probe (in probe order), the fitted curve (σ = 0
-    included), each tier, and the episodes spent."""
+    included; None for a stepped fault, whose tiers are steps), each tier, and the episodes
+    spent."""
 
     probes: list[Estimate]
-    curve: tuple[list[float], list[float]]
+    curve: tuple[list[float], list[float]] | None
     tiers: dict[str, TierResult]
     search_episodes: int
     verification_episodes: int
-    config: CrnSearchConfig
+    config: TierSearchConfig
     seed: int
     verify_seeds: dict[str, list[int]] = field(default_factory=dict)
 
@@ -372,22 +358,32 @@ class FaultTiers:
         return {name: tier.severity for name, tier in self.tiers.items()}
 
     def as_dict(self) -> dict[str, Any]:
-        """The record as YAML holds it (floats rounded as impact.yaml's)."""
-        search = crn_search_seeds(self.seed, self.config)
+        """The record as YAML holds it (floats rounded as impact.yaml's; plain values only):
+        how the tiers were found, the seeds, every probe (σ, R̃ with its CI, episodes) and the
+        monotone fit of them (continuous faults), each tier, and the episodes spent."""
+        # Each tier's batches, [first, last] seed of each (numbered over the fault, a tier's
+        # batches need not be adjacent).
+        size = self.config.verify_batch
+        verification = {
+            name: [[seeds[i], seeds[i + size - 1]] for i in range(0, len(seeds), size)]
+            for name, seeds in self.verify_seeds.items()
+        }
+        record: dict[str, Any] = {"method": STEPPED_METHOD}
+        if self.curve is not None:
+            search = crn_search_seeds(self.seed, self.config)
+            record = {
+                "method": METHOD,
+                "seeds": {"search": [search[0], search[-1]], "verification": verification},
+                "probes": [p.as_dict() for p in self.probes],
+                "fit": [
+                    {"severity": _rounded(x), "monotone": _rounded(y)}
+                    for x, y in zip(*self.curve, strict=True)
+                ],
+            }
+        else:
+            record["seeds"] = {"verification": verification}
         return {
-            "method": METHOD,
-            "search": asdict(self.config),
-            "seeds": {
-                "search": [search[0], search[-1]],
-                "verification": {
-                    name: [seeds[0], seeds[-1]] for name, seeds in self.verify_seeds.items()
-                },
-            },
-            "probes": [p.as_dict() for p in self.probes],
-            "curve": [
-                {"severity": _rounded(x), "monotone": _rounded(y)}
-                for x, y in zip(*self.curve, strict=True)
-            ],
+            **record,
             "tiers": {name: t.as_dict(self.config.ci_target) for name, t in self.tiers.items()},
             "episodes": {
                 "search": self.search_episodes,
@@ -456,7 +452,7 @@ def verify_tiers(
     severities: Mapping[str, float | None],
     *,
     seed: int,
-    config: CrnSearchConfig,
+    config: TierSearchConfig,
     batches: int,
     levels: Mapping[str, float] = LEVELS,
     n_boot: int = 1000,
@@ -470,7 +466,7 @@ def verify_tiers(
     estimates: dict[str, Estimate] = {}
     used: dict[str, list[int]] = {}
     targets = [name for name in levels if severities.get(name) is not None]
-    for _ in range(batches):
+    for batch in range(batches):  # each iteration measures one batch or stops
         first = [name for name in targets if name not in estimates]
         if first:
             name = first[0]
@@ -482,7 +478,7 @@ def verify_tiers(
         returns_list, clean_list = data.setdefault(name, ([], []))
         if len(returns_list) >= config.max_verify_batches:
             break
-        seeds = crn_verify_seeds(seed, config, index[name], len(returns_list))
+        seeds = crn_verify_seeds(seed, config, batch)
         returns, clean = _measure(faulty, reference, severities[name], seeds)
         returns_list.append(returns)
         clean_list.append(clean)
@@ -516,14 +512,7 @@ def search_fault(
     policy's; `coarse`: the coarse monotone curve (σ = 0 included, `impact_curve_points`), a
     guide for where to probe, never part of the fit."""
     config = config or CrnSearchConfig()
-    config.check_budget(len(levels))
-    missing = sorted(set(crn_reference_seeds(seed, config, levels)) - set(reference.clean))
-    if missing:
-        raise ContractError(
-            f"The impact reference holds no clean return of {len(missing)} seeds the tier "
-            f"search (protocol 4) may use (first {missing[0]}); measure it on "
-            "`crn_reference_seeds`."
-        )
+    _check(reference, seed, config, levels)
     if coarse is not None:
         coarse = (
             np.asarray(coarse[0], dtype=np.float64),
@@ -583,3 +572,209 @@ def search_fault(
         seed=seed,
         verify_seeds=used,
     )
+
+
+def verify_steps(
+    faulty: FaultyReturns,
+    reference: Reference,
+    severities: Mapping[str, float | None],
+    *,
+    seed: int,
+    config: TierSearchConfig | None = None,
+    levels: Mapping[str, float] = LEVELS,
+    n_boot: int = 1000,
+    ci: float = 0.95,
+) -> FaultTiers:
+    """Every tier of one stepped fault: the step its coarse curve gives (`severities`, None =
+    unreachable: `oodrl.protocol.impact.tier_severities` with `stepped`), verified by the
+    planned verification against the tier's band (module docstring). `faulty` and `reference`
+    as `search_fault`'s."""
+    config = config or TierSearchConfig()
+    _check(reference, seed, config, levels)
+    batches = min(config.max_verify_batches, config.budget // config.verify_batch)
+    verified, used = verify_tiers(
+        faulty,
+        reference,
+        severities,
+        seed=seed,
+        config=config,
+        batches=batches,
+        levels=levels,
+        n_boot=n_boot,
+        ci=ci,
+    )
+    tiers = {}
+    for name, level in levels.items():
+        estimate, n_batches = verified.get(name, (None, 0))
+        floor = _tier_floor(name, levels)
+        tiers[name] = TierResult(
+            name=name,
+            level=level,
+            severity=severities.get(name),
+            bracket=None,
+            resolved=True,
+            unreachable=severities.get(name) is None,
+            verification=estimate,
+            batches=n_batches,
+            verified=estimate is not None
+            and ci_meets_level(estimate, level, config.tolerance, floor),
+        )
+    return FaultTiers(
+        probes=[],
+        curve=None,
+        tiers=tiers,
+        search_episodes=0,
+        verification_episodes=sum(len(s) for s in used.values()),
+        config=config,
+        seed=seed,
+        verify_seeds=used,
+    )
+
+
+def _check(
+    reference: Reference, seed: int, config: TierSearchConfig, levels: Mapping[str, float]
+) -> None:
+    """Refuse settings that overflow a seed block or the budget, and a reference that lacks a
+    clean return the search or a verification may read."""
+    config.check_seed_blocks(len(levels))
+    missing = sorted(set(crn_reference_seeds(seed, config)) - set(reference.clean))
+    if missing:
+        raise ContractError(
+            f"The impact reference holds no clean return of {len(missing)} seeds the tier "
+            f"search (protocol 4) may use (first {missing[0]}); measure it on "
+            "`crn_reference_seeds` (re-run the impact_reference stage)."
+        )
+
+
+# -- the impact stage's calibration: the coarse curve, then the tiers ------------------------
+def reference_seeds(seed: int, n_episodes: int, search: TierSearchConfig) -> list[int]:
+    """Every reset seed whose clean return an impact stage reads: the coarse curve's, then the
+    tier search's and every verification batch's (`tier_search.crn_reference_seeds`)."""
+    return [*policy_seeds(seed, n_episodes), *crn_reference_seeds(seed, search)]
+
+
+def measure_reference(
+    adapter: EnvironmentAdapter,
+    policy: Policy,
+    n_episodes: int,
+    search: TierSearchConfig,
+    *,
+    seed: int,
+    horizon: int,
+    workers: int = 1,
+) -> Reference:
+    """π's clean returns on every seed of `reference_seeds` (one collection) and the random
+    policy's on `n_episodes` seeds of its own."""
+    seeds = reference_seeds(seed, n_episodes, search)
+    clean = clean_returns(
+        adapter, policy, len(seeds), seed=seed, horizon=horizon, workers=workers, seeds=seeds
+    )
+    random = random_policy_returns(adapter, n_episodes, seed=seed, horizon=horizon)
+    return Reference(
+        {s: float(r) for s, r in zip(seeds, clean, strict=True)}, random, policy.sha256
+    )
+
+
+def calibrate_impact(
+    adapter: EnvironmentAdapter,
+    policy: Policy,
+    injectors: Mapping[str, OnlineInjector],
+    severities: Sequence[float],
+    n_episodes: int,
+    *,
+    search: TierSearchConfig | None = None,
+    reference: Reference | None = None,
+    seed: int = 0,
+    horizon: int | None = None,
+    n_boot: int = 1000,
+    ci: float = 0.95,
+    workers: int = 1,
+) -> dict[str, Any]:
+    """The impact document of one (environment, policy): every fault's coarse curve on
+    `severities` and its tiers, searched for and verified by protocol 4's tier search up to the
+    grid's largest severity (SPEC §19, §23; module docstring). `reference`: π's clean returns on
+    every seed used and the random policy's (`measure_reference`; measured here when not
+    given)."""
+    if n_episodes < 2:
+        raise ConfigError(f"Impact calibration needs n_episodes >= 2; got {n_episodes}.")
+    if not severities:
+        raise ConfigError("The severity grid must hold at least one severity.")
+    config = CrnSearchConfig.from_params(search or TierSearchConfig(), max(severities))
+    config.check_seed_blocks(len(LEVELS))
+    horizon = horizon or episode_limit(adapter)
+    if reference is None:
+        reference = measure_reference(
+            adapter, policy, n_episodes, config, seed=seed, horizon=horizon, workers=workers
+        )
+    if reference.policy_sha256 != policy.sha256:
+        raise ContractError(
+            f"The impact reference was measured with policy {reference.policy_sha256[:12]}, "
+            f"not this one ({policy.sha256[:12]}); re-run its stage (impact_reference)."
+        )
+    missing = sorted(set(reference_seeds(seed, n_episodes, config)) - set(reference.clean))
+    if missing:
+        raise ContractError(
+            f"The impact reference holds no clean return of {len(missing)} seeds this search "
+            f"uses (first {missing[0]}); re-run its stage (impact_reference) with these params."
+        )
+    clean, random = reference.returns(policy_seeds(seed, n_episodes)), reference.random
+    faults = {}
+    for name in sorted(injectors):
+        injector = injectors[name]
+        steps = severity_steps(injector, adapter)
+        faulty = faulty_returns(
+            adapter, policy, injector, step_severities(steps) if steps else severities,
+            n_episodes, seed=seed, horizon=horizon, workers=workers,
+        )  # fmt: skip
+        record = impact_record(
+            Returns(clean, faulty, random), n_boot=n_boot, ci=ci, seed=seed, stepped=bool(steps)
+        )
+
+        def evaluate(severity: float, seeds: Sequence[int], injector=injector) -> np.ndarray:
+            """π's returns under the fault at `severity` on `seeds` (a function of both)."""
+            return faulty_returns(
+                adapter, policy, injector, [severity], len(seeds), seed=seed, horizon=horizon,
+                workers=workers, seeds=seeds,
+            )[float(severity)]  # fmt: skip
+
+        if steps:
+            found = verify_steps(
+                evaluate, reference, {n: tier_severity(t) for n, t in record["tiers"].items()},
+                seed=seed, config=config, n_boot=n_boot, ci=ci,
+            )  # fmt: skip
+        else:
+            found = search_fault(
+                evaluate, reference, seed=seed, config=config,
+                coarse=impact_curve_points(record), n_boot=n_boot, ci=ci,
+            )  # fmt: skip
+        tier_search = found.as_dict()
+        record["tiers"] = tier_search.pop("tiers")
+        faults[name] = {
+            **record,
+            "tier_search": tier_search,
+            "mode": injector.mode,
+            "params": {k: v for k, v in sorted(injector.get_params().items()) if k != "severity"},
+            **({"severity_steps": steps} if steps else {}),
+        }
+    n = n_episodes
+    crn = reference_seeds(seed, n, config)[n:]
+    return {
+        "env_id": adapter.env_id,
+        "policy_sha256": policy.sha256,
+        "levels": dict(LEVELS),
+        "horizon": horizon,
+        "n_episodes": n,
+        "n_boot": n_boot,
+        "ci": ci,
+        "seed": seed,
+        "search": config.model_dump(mode="json"),
+        "seeds": {
+            "policy": [seed + POLICY_SEED_OFFSET, seed + POLICY_SEED_OFFSET + n - 1],
+            "random": [seed + RANDOM_SEED_OFFSET, seed + RANDOM_SEED_OFFSET + n - 1],
+            "search": [crn[0], crn[config.search_episodes - 1]],
+            "verification": [crn[config.search_episodes], crn[-1]],
+        },
+        "clean_return": _rounded(clean.mean()),
+        "random_return": _rounded(random.mean()),
+        "faults": faults,
+    }

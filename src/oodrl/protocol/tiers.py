@@ -3,8 +3,8 @@ impact document gives, and the evaluation streams collected at them.
 
 The stages (one pipeline, `oodrl.suite.pipeline`):
 - `impact@<fault>` writes `data/impact/<fault>.yaml` (`oodrl.protocol.impact`): the fault's impact
-curve
-  and the severity of each tier, or "unreachable";
+  curve, the severity of each tier (or "unreachable", "not reached") with its verification, and
+  the probes of its tier search (`oodrl.protocol.tier_search`);
 - `collect_tiers@<fault>` collects the evaluation streams with the fault live from the onset at
   each reachable tier (`tier_sets`): `data/tiers/<fault>.zarr`;
 - `collect_calibration`, `collect_audit` and `collect_twins` collect the held-out clean
@@ -50,13 +50,14 @@ def read_impact(path: Path, fault: str) -> dict[str, Any]:
 
 
 def read_tiers(path: Path, fault: str) -> tuple[dict[str, float], list[str]]:
-    """The reachable tiers' severities (tier -> σ, mild first) and the unreachable tiers."""
-    from oodrl.protocol.impact import UNREACHABLE
+    """The tiers that have a severity (tier -> σ, in level order) and those that have none
+    ("unreachable", or "not reached" by a search whose probes ran out): no streams there."""
+    from oodrl.protocol.impact import tier_severity
 
     tiers = read_impact(path, fault)["fault"]["tiers"]
-    reachable = {n: float(t["severity"]) for n, t in tiers.items() if t["severity"] != UNREACHABLE}
-    unreachable = [n for n, t in tiers.items() if t["severity"] == UNREACHABLE]
-    return reachable, unreachable
+    severities = {name: tier_severity(tier) for name, tier in tiers.items()}
+    reachable = {n: s for n, s in severities.items() if s is not None}
+    return reachable, [n for n, s in severities.items() if s is None]
 
 
 def tier_sets(

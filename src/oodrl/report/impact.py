@@ -9,21 +9,25 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from oodrl.protocol.impact import UNREACHABLE
+from oodrl.protocol.impact import tier_severity
 
 
 def impact_table(document: Mapping[str, Any]) -> str:
-    """Markdown: per fault, the severity of each tier with R̃ re-measured there on held-out
-    episodes [CI] (✗ where that verification misses), or unreachable; and R̃ at σ = max."""
+    """Markdown: per fault, the severity of each tier with R̃ re-measured there on fresh
+    episodes [CI] and their number (✗ where that verification misses), or why it has none
+    (unreachable, not reached); and R̃ at σ = max."""
     from oodrl.report.tables import markdown_table
 
     def cell(tier: Mapping[str, Any]) -> str:
-        if tier["severity"] == UNREACHABLE:
-            return UNREACHABLE
+        if tier_severity(tier) is None:
+            return str(tier["severity"])
         check = tier["verification"]
         low, high = check["ci"]
         mark = "" if check["verified"] else " ✗ unverified"
-        return f"{tier['severity']:.4g} (R̃ {check['normalised']:.3f} [{low:.3f}, {high:.3f}]{mark})"
+        return (
+            f"{tier['severity']:.4g} (R̃ {check['normalised']:.3f} [{low:.3f}, {high:.3f}], "
+            f"n = {check['episodes']}{mark})"
+        )
 
     names = list(document["levels"])
     rows = []
@@ -36,12 +40,11 @@ def impact_table(document: Mapping[str, Any]) -> str:
              f"{last['normalised']:.3f} (σ={last['severity']:g})"]
         )  # fmt: skip
     header = ["fault", *(f"{n} (R̃={document['levels'][n]:g})" for n in names), "R̃ at largest σ"]
-    verify = document["search"]["verify_episodes"]
     title = (
         f"Impact tiers, {document['env_id']}: the severity σ of each tier, found by a search "
-        f"that measures R̃ where it reports (SPEC §19), and R̃ re-measured there on {verify} "
-        "held-out episodes (95% bootstrap CI); ✗ marks a tier whose verification misses its "
-        "level, left out of tier aggregates. A fault of n steps takes a tier only at a step "
+        "that measures R̃ where it reports (SPEC §19), and R̃ re-measured there on n fresh "
+        "episodes no probe used (95% bootstrap CI); ✗ marks a tier whose verification misses "
+        "its level, left out of tier aggregates. A stepped fault takes a tier only at a step "
         "whose R̃ lands between the tier's level and the next one's (0.5 after severe)\n\n"
     )
     return title + markdown_table(header, rows) + "\n"

@@ -11,10 +11,18 @@ severity (a bound, shown "≤ loss"), or "beyond range". Every file carries a pr
 (`oodrl.metrics.stamp.protocol_stamp`; unstamped files are version 1) and files of two
 versions are refused. Aggregation: `oodrl.metrics.leaderboard.build_board`; the page of
 every cell and its evidence: `oodrl.report.leaderboard_page`.
+
+Tier records of protocol 4 also keep the time-aware rule's 0/1 detections per faulty stream
+(``time_aware_detection_rate@K``, SPEC §24) where the detector has that rule. They are read into
+the same cells under that name, are no metric of their own (no record needs them; a record
+without them is simply not compared) and are not ranked: `build_board` compares them with
+``detection_rate@K`` on the same streams (`Board.rule_change`), which leaderboard.md ("What the
+time-aware rule changes"), leaderboard.yaml and leaderboard.json carry (`rule_change_mapping`).
 """
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -35,7 +43,9 @@ from oodrl.metrics.leaderboard import (
     Cell,
     Interval,
     above_floor,
+    constant_metric,
     policy_key,
+    tier_order,
 )
 from oodrl.metrics.stamp import UNSTAMPED_VERSION, one_protocol_version
 from oodrl.report.tables import UNCERTIFIED, certification_note, marked, record_injector
@@ -207,7 +217,10 @@ def read_inputs(results: ResultsPaths) -> Inputs:
                         f"{path}: a second record of {detector} on {tuple(cell)} (the first in "
                         f"{metrics_of[(cell, detector)][0]})."
                     )
-                metrics_of[(cell, detector)] = (path, set(episodes))
+                # The time-aware rule's detections are optional (`rule_change`): not a metric
+                # every record of the tier must hold.
+                held = {m for m in episodes if constant_metric(m) is None}
+                metrics_of[(cell, detector)] = (path, held)
                 records[(cell, detector)] = record
                 for metric, values in episodes.items():
                     cells.setdefault(metric, {}).setdefault(cell, {})[detector] = values
@@ -470,6 +483,115 @@ def _harm_lines(board: Board, alpha: float | None) -> list[str]:
     ]
 
 
+def _signed_interval(value: Interval) -> str:
+    return f"{value.value:+.3f} [{value.ci_low:+.3f}, {value.ci_high:+.3f}]"
+
+
+def _tau_text(tau: float | None) -> str:
+    return "—" if tau is None else f"{tau:.2f}"
+
+
+def _finite(value: float) -> float | None:
+    return round(value, 6) + 0.0 if math.isfinite(value) else None
+
+
+def rule_change_mapping(board: Board) -> dict[str, Any]:
+    """What the time-aware rule changes (`Board.rule_change`) as plain data: per metric and tier,
+    the cells compared, and per detector the difference time-aware − constant (mean over cells
+    [CI]), whether its CI excludes 0, each rule's IQM of cell rates and its cells (the
+    environments they are in where it runs on some only); Kendall's τ between the rules' IQM
+    rankings per scope of detectors (None where τ is undefined: fewer than two detectors, or
+    all tied under a rule). Empty where no record holds the time-aware rule."""
+    mapping: dict[str, Any] = {}
+    for (metric, tier), changes in board.rule_change.items():
+        detectors = {}
+        for d in changes.detectors:
+            environments, change = changes.of(d)
+            diff = change.differences[d]
+            detectors[d] = {
+                "difference": Interval(diff.mean, diff.ci_low, diff.ci_high).as_dict(),
+                "changed": diff.excludes_zero,
+                "n_cells": diff.n_cells,
+                "iqm": {rule: round(v[d], 6) + 0.0 for rule, v in change.iqm.items()},
+                "environments": list(environments),
+            }
+        mapping.setdefault(metric, {})[tier] = {
+            "n_cells": changes.n_cells,
+            "n_tier_cells": changes.n_tier_cells,
+            "detectors": detectors,
+            "kendall_tau": [
+                {
+                    "environments": list(e),
+                    "detectors": list(c.detectors),
+                    "tau": _finite(c.kendall_tau),
+                }
+                for e, c in changes.scopes
+            ],  # fmt: skip
+        }
+    return mapping
+
+
+def _rule_change_lines(board: Board, alpha: float | None) -> list[str]:
+    """What the time-aware rule changes (SPEC §24): per detection metric a table of each
+    detector's difference time-aware − constant per tier, and Kendall's τ per tier."""
+    lines: list[str] = []
+    metrics = sorted({m for m, _ in board.rule_change})
+    for metric in metrics:
+        tiers = tier_order(t for m, t in board.rule_change if m == metric)
+        changes = {t: board.rule_change[(metric, t)] for t in tiers}
+        lead = board.overall.get((metric, tiers[0]))
+        seen = {d for c in changes.values() for d in c.detectors}
+        ranked = [d for d in (lead.ranked() if lead else []) if d in seen]
+        order = ranked + sorted(seen - set(ranked))
+        scoped = False
+        rows = []
+        for d in order:
+            row = [d]
+            for t in tiers:
+                if d not in changes[t].detectors:
+                    row.append("—")
+                    continue
+                environments, change = changes[t].of(d)
+                diff = change.differences[d]
+                mark = " *" if diff.excludes_zero else ""
+                some = environments != changes[t].scopes[0][0]
+                scoped |= some
+                row.append(
+                    _signed_interval(Interval(diff.mean, diff.ci_low, diff.ci_high))
+                    + mark
+                    + (" †" if some else "")
+                )
+            rows.append(row)
+        rows.append(
+            ["Kendall τ of the two rules' IQM rankings"]
+            + [_tau_text(_finite(changes[t].scopes[0][1].kendall_tau)) for t in tiers]
+        )
+        rows.append(
+            ["cells with both rules"]
+            + [f"{changes[t].n_cells} of {changes[t].n_tier_cells}" for t in tiers]
+        )
+        lines += [
+            f"## What the time-aware rule changes: {metric_label(metric, alpha)}",
+            "",
+            "Per detector, its detection rate under the time-aware per-stream rule (each step's "
+            "score standardised by the clean law of its scores at that step on the ID streams, "
+            "SPEC §24) minus under the constant rule: the mean over cells [95% CI: paired "
+            "bootstrap of each cell's streams, the same draws for both rules]; * where the CI "
+            "excludes 0. Only cells whose results hold both rules are compared (results of "
+            "protocol 3 hold one).",
+            "",
+            *_table(["detector", *(f"{t}: time-aware − constant [95% CI]" for t in tiers)], rows),
+            "",
+            *(
+                ["† over the cells where the detector runs (it runs on some environments only)."]
+                + [""]
+                if scoped
+                else []
+            ),
+        ]
+    return lines
+
+
 def _stability_lines(board: Board, metric: str, tier: str) -> list[str]:
     stability = board.stability[(metric, tier)]
     lines = ["### Ranking stability across policies", ""]
@@ -572,6 +694,7 @@ def markdown(
     for metric, tier in board.order():
         lines += _section(board, metric, tier, alpha, uncertified)
     lines += _harm_lines(board, alpha)
+    lines += _rule_change_lines(board, alpha)
     if unverified:
         cells = ", ".join("/".join(cell) for cell in unverified)
         lines += [
@@ -681,6 +804,8 @@ def board_mapping(
         "minimum_detectable_impact": mdi,
     }
     mapping |= versions.mapping() if versions is not None else {}
+    if board.rule_change:  # results of protocol 3 have none: their files keep their keys
+        mapping["rule_change"] = rule_change_mapping(board)
     return mapping | ({UNCERTIFIED: list(uncertified)} if uncertified else {})
 
 

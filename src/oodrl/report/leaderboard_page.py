@@ -13,7 +13,9 @@ operating point: detection rate against K, delays, the clean false-alarm rate ac
 the tier results carry one; the protocol version and a params hash. `page_html` embeds that
 document, as a `<script type="application/json">` block, in the template leaderboard_page.html,
 whose inline CSS and JavaScript draw, first, the chosen tier and metric's ranking (IQM [95% CI]
-drawn as intervals, mean, benign alarm rate, mild − benign gap) and then that tier's cells, each
+drawn as intervals, mean, benign alarm rate, mild − benign gap), then, where the results hold the
+time-aware per-stream rule (SPEC §24), what it changes of the tier's detection rate per detector
+(`rule_change`: time-aware − constant [95% CI], Kendall τ), and then that tier's cells, each
 opening its evidence (SVG); the view (tier, metric, sorts, filters) is kept in the URL's
 fragment. The page needs no network and no fetch. Same inputs, same bytes: keys sorted, no
 time, no host path (SPEC §14).
@@ -52,6 +54,7 @@ from oodrl.report.leaderboard import (
     harm_metric,
     lower_is_better,
     metric_label,
+    rule_change_mapping,
 )
 
 #: The suite's directory, where the page's reports/ and the archive are.
@@ -103,6 +106,8 @@ def suite_params_hash(
 def _cells(inputs: Inputs, board: Board) -> list[dict[str, Any]]:
     scores: dict[Cell, dict[str, dict[str, float]]] = {}
     for metric, cells in inputs.cells.items():
+        if metric not in board.metrics:  # the time-aware rule's detections: `rule_change`
+            continue
         for cell, values in cells.items():
             scores.setdefault(Cell(*cell), {})[metric] = {
                 d: _rounded(np.mean(v)) for d, v in values.items()
@@ -222,6 +227,8 @@ def page_data(
             )
         ],
     }
+    if board.rule_change:  # what the time-aware rule changes (SPEC §24), where results hold it
+        data["rule_change"] = rule_change_mapping(board)
     if us_per_step is not None:
         data["us_per_step"] = {d: _rounded(v) for d, v in us_per_step.items()}
     return data

@@ -22,11 +22,14 @@ def run_impact_reference(
     params: Params, policy_path: Path, out: Path, *, horizon: int | None = None
 ) -> None:
     """Stage impact_reference: π's clean returns on every seed the impact stages use (the
-    coarse curves', the tier search's, the verifications') and the random policy's, measured
-    once for every fault (`oodrl.protocol.impact.measure_reference`)."""
+    coarse curves', and the tier search's common seeds and every verification batch's,
+    `oodrl.protocol.tier_search.crn_reference_seeds`) and the random policy's, measured once
+    for every fault, whose paired estimates all reuse them
+    (`oodrl.protocol.tier_search.measure_reference`)."""
     from oodrl.envs import ENVIRONMENTS
     from oodrl.policies.load import load_policy
-    from oodrl.protocol.impact import episode_limit, measure_reference
+    from oodrl.protocol.impact import episode_limit
+    from oodrl.protocol.tier_search import measure_reference
 
     adapter = ENVIRONMENTS.get(params.env.id)()
     policy = load_policy(policy_path, mode=params.policy.mode)
@@ -51,11 +54,13 @@ def run_impact(
     horizon: int | None = None,
 ) -> dict:
     """Calibrate the impact of `injectors` (default: benchmark.injectors), search and verify
-    their tiers, and write the document; returns it. `reference_path`: impact_reference's
-    document (measured here when not given)."""
+    their tiers (protocol 4's search, `tiers.search`, up to the grid's largest severity), and
+    write the document; returns it. `reference_path`: impact_reference's document (measured
+    here when not given)."""
     from oodrl.envs import ENVIRONMENTS
     from oodrl.policies.load import load_policy
-    from oodrl.protocol.impact import Reference, calibrate_impact, live_injectors
+    from oodrl.protocol.impact import Reference, live_injectors
+    from oodrl.protocol.tier_search import calibrate_impact
 
     if not grid or any(not 0 < s <= 1 for s in grid) or list(grid) != sorted(set(grid)):
         raise ConfigError(

@@ -1,7 +1,6 @@
-"""The metrics stage: score stores -> results.yaml, sweep_results.yaml, metrics.json, tables.md.
-
-What the results hold, and how they are computed: `oodrl.metrics.results`.
-"""
+"""The metrics stage: every detector's cells -> results.yaml, sweep_results.yaml, metrics.json,
+tables.md (SPEC §23: a merge; what the results hold, and how they are computed:
+`oodrl.metrics.results`, `oodrl.metrics.cells`)."""
 
 from __future__ import annotations
 
@@ -15,17 +14,38 @@ from oodrl.io.fileio import atomic_write_text
 
 def run_metrics(
     params: Params,
-    scores_dir: Path,
+    cells_dir: Path,
     results_path: Path,
     sweep_path: Path,
     metrics_path: Path,
     tables_path: Path,
 ) -> None:
-    from oodrl.metrics.results import compute_results
+    from oodrl.metrics.cells import read_all_cells
+    from oodrl.metrics.results import assemble_results
+
+    cells = read_all_cells(params, cells_dir)
+    write_results(
+        params,
+        assemble_results(params, [(c.detector, (c.records, c.sweep, c.modes)) for c in cells]),
+        results_path,
+        sweep_path,
+        metrics_path,
+        tables_path,
+    )
+
+
+def write_results(
+    params: Params,
+    computed,
+    results_path: Path,
+    sweep_path: Path,
+    metrics_path: Path,
+    tables_path: Path,
+) -> None:
+    """Write the metrics stage's four files from its `Results`."""
     from oodrl.metrics.stamp import protocol_stamp
     from oodrl.report.tables import metrics_json, render_tables
 
-    computed = compute_results(params, scores_dir)
     stamp = protocol_stamp(params)  # SPEC §15: the leaderboard refuses to mix protocols
     results = {**stamp, **computed.results_document()}
     sweep = {**stamp, **computed.sweep_document()}

@@ -1,10 +1,12 @@
-"""The tier_metrics stage: tier and calibration score stores, impact documents ->
-reports/tier_results.yaml and reports/tiers/ (tables.md, impact_curves.png). What they hold and
-how: `oodrl.metrics.tiers`."""
+"""The tier_metrics stage: every detector's cells and the faults' impact documents ->
+reports/tier_results.yaml and reports/tiers/ (tables.md, impact_curves.png); a merge (SPEC
+§23). What they hold and how: `oodrl.metrics.tiers`, `oodrl.metrics.cells`."""
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 from oodrl.config import Params
 from oodrl.io import yamlio
@@ -12,13 +14,25 @@ from oodrl.io.fileio import atomic_write_text
 
 
 def run_tier_metrics(
-    params: Params, scores_dir: Path, impact_dir: Path, results_path: Path, report_dir: Path
+    params: Params, cells_dir: Path, impact_dir: Path, results_path: Path, report_dir: Path
 ) -> None:
-    from oodrl.metrics.tiers import compute_tier_results, impact_document, tier_tables
+    from oodrl.metrics.cells import read_all_cells
+    from oodrl.metrics.tiers import assemble_tier_results
+
+    records = [r for cells in read_all_cells(params, cells_dir) for r in cells.tier_records]
+    document = assemble_tier_results(params, records, Path(impact_dir))
+    write_tier_results(params, document, impact_dir, results_path, report_dir)
+
+
+def write_tier_results(
+    params: Params, document: Mapping[str, Any], impact_dir: Path, results_path: Path,
+    report_dir: Path,
+) -> None:  # fmt: skip
+    """Write the tier_metrics stage's files from tier_results.yaml's content."""
+    from oodrl.metrics.tiers import impact_document, tier_tables
     from oodrl.report.impact import plot_impact_curves
 
-    document = compute_tier_results(params, scores_dir, impact_dir)
-    impact = impact_document(params, impact_dir)
+    impact = impact_document(params, Path(impact_dir))
     atomic_write_text(results_path, yamlio.dump(document))
     Path(report_dir).mkdir(parents=True, exist_ok=True)
     atomic_write_text(Path(report_dir) / "tables.md", tier_tables(document, impact))

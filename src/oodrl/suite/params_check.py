@@ -3,7 +3,8 @@ constraints (`oodrl.config`), so that nothing that passes it fails later for a p
 (SPEC §22). Only check-params (and `oodrl new`) runs these; no stage pays for them.
 
 - `check_protocol`: the protocol's seed ranges never overlap (ID, evaluation, tier calibration
-  and impact streams each have seeds of their own), a detector whose threshold rule is
+  and impact streams each have seeds of their own), the tier search's sizes fit its seed blocks
+  and its budget (`TierSearchConfig.check_seed_blocks`), a detector whose threshold rule is
   `episode_max` has the held-out streams its `alpha` needs, and no library detector's block
   sets a key of oodrl's that oodrl would ignore and the library would have read.
 - `check_library_detectors`: every library detector (SPEC §17) is fitted and scored on dummy
@@ -61,23 +62,26 @@ def _check_seed_ranges(params: Params) -> None:
     one set's episodes as another's (an evaluation stream fitted on, a calibration stream
     that is an evaluation stream's twin)."""
     from oodrl.config import (
+        CRN_SEARCH_SEED_OFFSET,
+        CRN_VERIFY_SEED_OFFSET,
         POLICY_SEED_OFFSET,
         RANDOM_SEED_OFFSET,
-        SEARCH_SEED_OFFSET,
-        VERIFY_SEED_OFFSET,
     )
     from oodrl.protocol.impact import LEVELS
 
     data, tiers, search = params.data, params.tiers, params.tiers.search
-    probes = len(LEVELS) * search.max_probes * search.probe_episodes
+    # The tier search's blocks fit (their sizes, its budget), before any overlap is looked at.
+    search.check_seed_blocks(len(LEVELS))
+    verify = search.max_verify_batches * search.verify_batch  # numbered over the fault
     # (the key to change when the range overlaps an earlier one, its streams, first seed, count)
     sets = [
         ("data.n_id", "ID streams", 0, data.n_id),
         ("tiers.episodes", "policy's impact episodes", POLICY_SEED_OFFSET, tiers.episodes),
         ("tiers.episodes", "random policy's impact episodes", RANDOM_SEED_OFFSET, tiers.episodes),
-        ("tiers.search", "tier search's episodes", SEARCH_SEED_OFFSET, probes),
-        ("tiers.search.verify_episodes", "tier verification's episodes", VERIFY_SEED_OFFSET,
-         search.verify_episodes),
+        ("tiers.search.search_episodes", "tier search's episodes", CRN_SEARCH_SEED_OFFSET,
+         search.search_episodes),
+        ("tiers.search.verify_batch", "tier verification's episodes", CRN_VERIFY_SEED_OFFSET,
+         verify),
         ("data.eval_seed_offset", "evaluation streams and the tier cells' twins",
          data.eval_seed_offset, max(data.n_ood, tiers.n_streams)),
         ("tiers.calibration_seed_offset", "tier calibration streams",

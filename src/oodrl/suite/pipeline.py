@@ -72,6 +72,7 @@ VERB_COMPONENTS: dict[str, tuple[str, ...]] = {
     "tier-metrics": ("detectors",),  # every benchmark detector, built for its latency
     "render": ("environment", "detectors"),  # it streams every benchmark detector (its cost)
     "metrics": ("detectors",),  # every benchmark detector, built for its latency
+    "cells": ("detector",),
 }
 
 _DOTTED = r"[A-Za-z_]\w*(?:\.[A-Za-z_]\w*)*"
@@ -551,6 +552,7 @@ def rendered(pipeline_dir: Path, root: Path) -> str:
     stages = document["stages"]
     if is_recorded(params):
         _as_recorded(stages)
+    _write_out_lists(stages, params)
     for _, body in _stage_bodies(stages):
         kind = stage_kind(body["cmd"])
         if kind is not None and kind[0] == CHECK_VERB:
@@ -581,6 +583,7 @@ def rendered_detector(pipeline_dir: Path, root: Path, detector: str) -> str:
     stages = document["stages"]
     if is_recorded(params):
         _as_recorded(stages)
+    _write_out_lists(stages, params)
     _add_stamps(stages)
     _add_policy_dep(stages, detector, params, Project(root.resolve(), pipeline_dir.resolve()))
     if pipeline_dir.resolve() != root.resolve():
@@ -658,19 +661,60 @@ def _as_recorded(stages: dict[str, Any]) -> None:
             stages[name] = replacement
         kept = name
     policy = str(variant["policy"])
+    unscored = variant["unscored"]
+    removed_outs = {simulated["out"] for simulated in unscored.values() if "out" in simulated}
     for _, body in _stage_bodies(stages):
-        for option, simulated in variant["unscored"].items():
-            argument = f" {option} {simulated['dep']}"
+        for option, simulated in unscored.items():
+            argument = f" {option} {simulated['argument']}"
             if argument in body["cmd"]:
                 body["cmd"] = _replaced(body["cmd"], argument, "")
                 body["deps"].remove(simulated["dep"])
-                body["outs"].remove(simulated["out"])
+                if "out" in simulated:
+                    body["outs"].remove(simulated["out"])
+        # A stage reading a store no stage writes any more (the cells' held-out scores) reads
+        # without it.
+        deps = body.get("deps") or []
+        deps[:] = [dep for dep in deps if dep not in removed_outs]
         if POLICY in body["cmd"]:
             body["cmd"] = _replaced(body["cmd"], POLICY, policy)
         deps = body.get("deps") or []
         for i, dep in enumerate(deps):
             if dep == POLICY:
                 deps[i] = policy
+
+
+#: A template's dep or out naming one of these is written out once per listed component.
+EACH = {"${each_detector}": "detectors", "${each_injector}": "injectors"}
+
+
+def _write_out_lists(stages: dict[str, Any], params: dict[str, Any]) -> None:
+    """Each dep or out naming `${each_detector}` or `${each_injector}` written out once per
+    benchmark detector or injector (detector-major when it names both): every dep is then a
+    stage's own output (SPEC §23), never a directory several stages fill."""
+    benchmark = params.get("benchmark") or {}
+    lists = {marker: list(benchmark.get(key) or []) for marker, key in EACH.items()}
+    for _, body in _stage_bodies(stages):
+        for field in ("deps", "outs"):
+            entries = body.get(field)
+            if not entries:
+                continue
+            # The blank line and comments after a sequence's last entry (before the next stage)
+            # stay after its last entry.
+            tail = entries.ca.items.pop(len(entries) - 1, None)
+            written = []
+            for entry in entries:
+                path = entry if isinstance(entry, str) else next(iter(entry))
+                paths = [path]
+                for marker, names in lists.items():
+                    if marker in path:
+                        paths = [p.replace(marker, name) for p in paths for name in names]
+                if paths == [path]:
+                    written.append(entry)
+                else:
+                    written += [p if isinstance(entry, str) else {p: entry[path]} for p in paths]
+            entries[:] = written
+            if tail is not None:
+                entries.ca.items[len(entries) - 1] = tail
 
 
 def _tail_holder(node) -> tuple[Any, Any]:
@@ -843,13 +887,13 @@ def project_dirs(root: Path) -> list[Path]:
     return [*pipeline_dirs(root), root / SUITE_DIR]
 
 
-#: The directories that several stages fill, an output each, and a stage reads whole (a dep of
-#: tier_metrics, metrics or render). Git ignores each as a whole (FILLED_DIRS_IGNORED, in every
-#: project's .gitignore), so DVC writes no .gitignore inside them and a fresh clone has none of
-#: them: DVC's `dvc repro --pull --allow-missing` then forgives the reading stage's missing dep.
-#: A directory git made for a committed .gitignore would count as present and changed, and that
-#: stage would run on inputs never pulled (SPEC §21).
-FILLED_DIRS = ("data/impact", "models/detectors", "scores")
+#: The directories that several stages fill, an output each (protocol 4 reads none of them
+#: whole: every dep names one stage's output, SPEC §23). Git ignores each as a whole
+#: (FILLED_DIRS_IGNORED, in every project's .gitignore), so DVC writes no .gitignore inside them
+#: and a clone holds no directory for them: a fresh clone's `dvc repro --pull --allow-missing`
+#: counts a missing output as missing, never a git-made directory as present and changed
+#: (SPEC §21). The faults' impact records (data/impact) are git-tracked (SPEC §23).
+FILLED_DIRS = ("cells", "models/detectors", "scores")
 FILLED_DIRS_IGNORED = (
     "# Directories several stages fill, ignored whole (oodrl.suite.pipeline.FILLED_DIRS: why).\n"
     + "".join(f"/{directory}/\n" for directory in FILLED_DIRS)

@@ -41,11 +41,8 @@ Three ways to share, chosen by what is configured:
 With a remote a task first pulls what the remote has (`dvc pull --allow-missing`), then runs
 `dvc repro --pull`. Not `dvc repro --pull --allow-missing`, DVC's own "fetch what is unchanged,
 run what changed": it skips, without pulling, a stage whose outputs are missing but otherwise
-current, and forgives a missing dep only when its path is absent. On a fresh clone that runs
-nothing (git ignores whole the directories several stages fill, `oodrl.suite.pipeline.FILLED_DIRS`,
-so a clone has none of them), but once a stage reading such a directory must run (the root's
-`tier_metrics` reads `data/impact`, each `impact@<fault>` writes one file in it), `--pull`
-cannot fetch the directory, which is no stage's output. One `dvc pull` is also faster than
+current, and forgives a missing dep only when its path is absent, so a stage that must run
+after a skipped one would read inputs never pulled. One `dvc pull` is also faster than
 DVC's pull per stage. `dvc pull --allow-missing` passes over a remote that does not answer, so
 a remote is checked before any task starts (`_check_remote`).
 """

@@ -106,7 +106,7 @@ for name in params.benchmark.detectors:
     fit.fit_detector(params, name, out / "data/id.zarr", model)
     score.score_clean_sets(name, model, out / "scores", out / "data/eval.zarr", {})
     for injector in injectors:
-        ood, sweep = (out / f"data/{kind}/{injector}.zarr" for kind in ("ood", "sweep"))
+        ood, sweep = out / "data/ood", out / "data/sweep"
         score.score_injector_sets(name, injector, model, out / "scores", ood, sweep, None)
 """
 

@@ -18,7 +18,9 @@ from typing import Any
 import yaml
 
 #: The `tiers` block of tiny test pipelines: the fewest calibration streams α = 0.05 allows
-#: under the marginal rule, a handful of audit and tier streams, a two-probe tier search.
+#: under the marginal rule, a handful of audit and tier streams, a two-probe tier search on two
+#: common episodes and one verification batch of two episodes a tier (the fewest batches that
+#: verify every tier: 12 search and verification episodes a fault).
 TINY_TIERS: dict[str, Any] = {
     "grid": [0.5, 1.0],
     "episodes": 2,
@@ -26,7 +28,7 @@ TINY_TIERS: dict[str, Any] = {
     "threshold_rule": "episode_max",
     "n_audit": 4,
     "n_streams": 3,
-    "search": {"probe_episodes": 2, "max_probes": 2, "verify_episodes": 2},
+    "search": {"search_episodes": 2, "max_probes": 2, "verify_batch": 2, "max_verify_batches": 4},
 }
 
 
