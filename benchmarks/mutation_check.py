@@ -48,7 +48,8 @@ MUTATIONS = (
         "knob_reruns_unrelated_stage",
         "a knob re-running an unrelated stage",
         "src/oodrl/suite/detector_pipeline.yaml",
-        (("      - detectors.${detector}\n", "      - detectors\n"),),
+        # The fit stage's (the cells stage reads its own block too, SPEC §23).
+        (("      - detectors.${detector}\n    outs:\n", "      - detectors\n    outs:\n"),),
         ("tests/pipeline/test_pipeline.py::test_detector_param_reruns_only_that_detector",),
     ),
     Mutation(
