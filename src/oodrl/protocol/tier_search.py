@@ -535,43 +535,10 @@ def search_fault(
         plans[name] = _plan(level, tier_tolerance(level, config.tolerance), xs, fit, config, None)
         crossing = first_crossing(xs, fit, level)
         severities[name] = None if crossing is None else round(crossing, 6)
-    search_spent = len(probes) * config.search_episodes
-    batches = min(config.max_verify_batches, (config.budget - search_spent) // config.verify_batch)
-    verified, used = verify_tiers(
-        faulty,
-        reference,
-        severities,
-        seed=seed,
-        config=config,
-        batches=batches,
-        levels=levels,
-        n_boot=n_boot,
-        ci=ci,
-    )
-    tiers = {}
-    for name, level in levels.items():
-        estimate, n_batches = verified.get(name, (None, 0))
-        tiers[name] = TierResult(
-            name=name,
-            level=level,
-            severity=severities[name],
-            bracket=plans[name].bracket,
-            resolved=plans[name].resolved,
-            unreachable=plans[name].unreachable,
-            verification=estimate,
-            batches=n_batches,
-            verified=estimate is not None and ci_meets_level(estimate, level, config.tolerance),
-        )
-    return FaultTiers(
-        probes=probes,
-        curve=([float(x) for x in xs], [float(y) for y in fit]),
-        tiers=tiers,
-        search_episodes=search_spent,
-        verification_episodes=sum(len(s) for s in used.values()),
-        config=config,
-        seed=seed,
-        verify_seeds=used,
-    )
+    return _verified(
+        faulty, reference, severities, plans, probes, (xs, fit),
+        seed=seed, config=config, levels=levels, n_boot=n_boot, ci=ci,
+    )  # fmt: skip
 
 
 def verify_steps(
@@ -591,7 +558,32 @@ def verify_steps(
     as `search_fault`'s."""
     config = config or TierSearchConfig()
     _check(reference, seed, config, levels)
-    batches = min(config.max_verify_batches, config.budget // config.verify_batch)
+    return _verified(
+        faulty, reference, severities, None, [], None,
+        seed=seed, config=config, levels=levels, n_boot=n_boot, ci=ci,
+    )  # fmt: skip
+
+
+def _verified(
+    faulty: FaultyReturns,
+    reference: Reference,
+    severities: Mapping[str, float | None],
+    plans: Mapping[str, _Plan] | None,
+    probes: list,
+    curve: tuple[np.ndarray, np.ndarray] | None,
+    *,
+    seed: int,
+    config: TierSearchConfig,
+    levels: Mapping[str, float],
+    n_boot: int,
+    ci: float,
+) -> FaultTiers:
+    """The planned verification of `severities` on what the search (`probes`) left of the
+    budget, and the fault's record. A searched tier carries its plan (`plans`) and is verified
+    against level ± tolerance; without plans (a stepped fault) each tier is a step, verified
+    against its band."""
+    spent = len(probes) * config.search_episodes
+    batches = min(config.max_verify_batches, (config.budget - spent) // config.verify_batch)
     verified, used = verify_tiers(
         faulty,
         reference,
@@ -606,24 +598,27 @@ def verify_steps(
     tiers = {}
     for name, level in levels.items():
         estimate, n_batches = verified.get(name, (None, 0))
-        floor = _tier_floor(name, levels)
+        plan = plans[name] if plans is not None else None
+        floor = None if plans is not None else _tier_floor(name, levels)
         tiers[name] = TierResult(
             name=name,
             level=level,
             severity=severities.get(name),
-            bracket=None,
-            resolved=True,
-            unreachable=severities.get(name) is None,
+            bracket=plan.bracket if plan else None,
+            resolved=plan.resolved if plan else True,
+            unreachable=plan.unreachable if plan else severities.get(name) is None,
             verification=estimate,
             batches=n_batches,
             verified=estimate is not None
             and ci_meets_level(estimate, level, config.tolerance, floor),
         )
     return FaultTiers(
-        probes=[],
-        curve=None,
+        probes=probes,
+        curve=None
+        if curve is None
+        else ([float(x) for x in curve[0]], [float(y) for y in curve[1]]),
         tiers=tiers,
-        search_episodes=0,
+        search_episodes=spent,
         verification_episodes=sum(len(s) for s in used.values()),
         config=config,
         seed=seed,
