@@ -75,9 +75,11 @@ GROUPS: dict[str, str] = {
         module: "serial_built_suite"
         for module in (
             "tests/test_suite_run.py",
+            "tests/test_suite_run_ray.py",
             "tests/test_suite_try.py",
             "tests/test_remote.py",
             "tests/test_migration.py",
+            "tests/test_migration_resume.py",
         )
     },
 }

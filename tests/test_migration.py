@@ -1,107 +1,35 @@
 """A protocol change that lands a step at a time (SPEC §26): the two-environment suite built and
 committed at this protocol, then the protocol bumped in its own code (stamp.py's
 PROTOCOL_VERSION, which its stages run) and committed with no pipeline rebuilt: every pipeline
-pending, the checks passing. `oodrl suite run --commit` then builds and commits a pipeline at a
-time; killed (SIGKILL) after its first commit, it resumes in a fresh clone with an empty DVC
-cache, builds only what is left, and ends where a build in one go ends, byte for byte. Each
-refusal is one line before anything runs, with nothing committed.
+pending, the checks passing. Each refusal of `oodrl suite run` is one line before anything runs,
+with nothing committed. (A run killed after its first commit and resumed in a fresh clone:
+tests/test_migration_resume.py, on the same lab.)
 
 Real git, DVC, processes and HTTP servers on loopback. The suite is built once, at this
-protocol; after the bump, the stages whose code stamps it changed (a few a pipeline) run in one
-go, and in two steps split by the kill, the other outputs pulled from the lab's remote. Every
-other test here runs in a clone and stops before any stage."""
+protocol (tests/migration_lab.py); every test here runs in a clone of the lab and stops before
+any stage."""
 
 from __future__ import annotations
 
-import contextlib
 import http.server
-import os
-import re
-import signal
-import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
-from suite_repo import (
-    SUITE,
-    code_env,
-    copy_built,
-    head_commit,
-    locks,
-    run_folder,
-    serial_built_suite,
-)
+from migration_lab import PIPELINES, clone, head, migration_lab, suite_run, version_of
+from suite_repo import SUITE, code_env, locks
 
 from oodrl.suite.checkout_lock import checkout_lock
-from oodrl.suite.run import RUN_META, _push
-from oodrl.testing.pipeline import environment, run
+from oodrl.suite.run import RUN_META
+from oodrl.testing.pipeline import run
 
 pytestmark = pytest.mark.slow
-
-PIPELINES = [".", "pipeline/cartpole"]
-STAMP = Path("src", "oodrl", "metrics", "stamp.py")
-
-
-def version_of(repo: Path) -> int:
-    return int(re.search(r"^PROTOCOL_VERSION = (\d+)", (repo / STAMP).read_text(), re.M)[1])
 
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory, repo_root) -> tuple[Path, Path]:
-    """A lab's checkout and its DVC remote (a directory): the suite built at this protocol (the
-    test run's one serial build, `suite_repo.serial_built_suite`: the locks `oodrl suite run`
-    writes too, test_suite_run checks), pushed as `oodrl suite run` pushes a project, and
-    committed; then the protocol bumped and committed, no pipeline rebuilt: every pipeline
-    pending. Every clone below comes from it, and reads the remote over HTTP, read-only: a clone
-    pulls the outputs of the stages the bump left as they were and computes the others, pushing
-    nothing."""
-    folder = tmp_path_factory.mktemp("lab")
-    built, _ = serial_built_suite(repo_root, head_commit(repo_root), run_folder(tmp_path_factory))
-    repo = copy_built(built, folder / "repo")
-    remote = folder / "remote"
-    remote.mkdir()
-    for project in [*PIPELINES, SUITE]:  # each a DVC project of its own
-        run(repo / project, "dvc", "remote", "add", "--local", "-d", "lab", str(remote))
-        _push(repo / project, code_env(repo))
-    run(repo, "git", "add", "-A")
-    run(repo, "git", "commit", "-q", "-m", "built")
-    stamp = repo / STAMP
-    version = version_of(repo)
-    stamp.write_text(stamp.read_text().replace(f"PROTOCOL_VERSION = {version}",
-                                               f"PROTOCOL_VERSION = {version + 1}"))  # fmt: skip
-    run(repo, "git", "commit", "-q", "-am", f"protocol {version + 1}")
-    return repo, remote
-
-
-def clone(source: Path, dest: Path, url: str | None = None) -> Path:
-    """A fresh clone (git's files only, an empty DVC cache), whose default DVC remote is `url`
-    (in config.local, as docs/how-to/remotes.md says), if any."""
-    run(source.parent, "git", "clone", "-q", str(source), str(dest))
-    assert not (dest / ".dvc" / "cache").exists()
-    if url is not None:
-        run(dest, "dvc", "remote", "add", "--local", "-d", "pub", url)
-    return dest
-
-
-def head(repo: Path) -> str:
-    return run(repo, "git", "rev-parse", "HEAD").stdout.strip()
-
-
-def subjects(repo: Path, since: str) -> list[str]:
-    """The subjects of the commits after `since`, oldest first."""
-    log = run(repo, "git", "log", "--reverse", "--format=%s", f"{since}..HEAD").stdout
-    return log.splitlines()
-
-
-def suite_run(repo: Path, *args: str) -> subprocess.CompletedProcess:
-    """`oodrl suite run` in a process of its own, as a maintainer runs it, on the checkout's
-    own code (its PROTOCOL_VERSION is the target)."""
-    command = [sys.executable, "-m", "oodrl", "suite", "run", "--root", str(repo), *args]
-    return subprocess.run(command, env=environment(code_env(repo)), capture_output=True,
-                          text=True)  # fmt: skip
+    return migration_lab(tmp_path_factory, repo_root)
 
 
 def state(repo: Path) -> tuple:
@@ -139,96 +67,6 @@ def test_a_protocol_bump_lands_with_every_pipeline_pending(lab):
     # The leaderboard is the previous version's, labelled so, until every pipeline is rebuilt.
     leaderboard = (repo / SUITE / "reports" / "leaderboard.md").read_text()
     assert f"Protocol version {version - 1};" in leaderboard
-
-
-def _descendants(pid: int) -> list[int]:
-    """Every process below `pid` (its stage commands lead process groups of their own)."""
-    parents: dict[int, list[int]] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:  # ended meanwhile
-            continue
-        parents.setdefault(int(fields[1]), []).append(int(stat.parent.name))
-    found, todo = [], [pid]
-    while todo:
-        children = parents.get(todo.pop(), [])
-        found += children
-        todo += children
-    return found
-
-
-def _kill_after_first_commit(repo: Path, since: str) -> list[str]:
-    """`oodrl suite run --commit --workers 1`, SIGKILLed with every process it started as soon
-    as it has committed a pipeline (a machine lost mid-build): the commits it made."""
-    command = [sys.executable, "-m", "oodrl", "suite", "run", "--commit", "--workers", "1"]
-    quiet = subprocess.DEVNULL
-    process = subprocess.Popen(command, cwd=repo, env=environment(code_env(repo)), stdout=quiet,
-                               stderr=quiet)  # fmt: skip
-    try:
-        while not subjects(repo, since):
-            assert process.poll() is None, "the run ended before its first commit"
-            time.sleep(0.2)
-    finally:
-        for pid in [process.pid, *_descendants(process.pid)]:
-            with contextlib.suppress(ProcessLookupError):  # ended meanwhile
-                os.kill(pid, signal.SIGKILL)
-        process.wait()
-    return subjects(repo, since)
-
-
-def test_a_run_killed_after_its_first_commit_resumes_in_a_fresh_clone(lab, tmp_path, serve):
-    repo, remote = lab
-    version, bumped, url = version_of(repo), head(repo), serve(remote)
-
-    # The reference: the migration in one go.
-    one_go = clone(repo, tmp_path / "one-go", url)
-    built = suite_run(one_go, "--commit")
-    assert built.returncode == 0, built.stdout + built.stderr
-    made = [re.sub(r" in \d+ s$", "", subject) for subject in subjects(one_go, bumped)]
-    assert sorted(made[:2]) == [f"suite run: {p} built at protocol {version}" for p in PIPELINES]
-    assert made[2:] == [f"suite run: {SUITE} (the leaderboard) built at protocol {version}, "
-                        f"every pipeline current"]  # fmt: skip
-    progress = [line for line in built.stdout.splitlines() if " done, committed; " in line]
-    assert [re.sub(r", \d+:\d\d:\d\d elapsed$", "", line.split("; ")[1]) for line in progress] == [
-        "1 of 2 done, 1 to do",
-        "2 of 2 done, 0 to do",
-    ]
-
-    # The same migration, its machine lost once the first pipeline is committed.
-    killed = clone(repo, tmp_path / "killed", url)
-    (first,) = _kill_after_first_commit(killed, bumped)
-    done = re.fullmatch(r"suite run: (\S+) built at protocol (\d+) in \d+ s", first)
-    assert done and done[2] == str(version), first
-    (rest,) = [pipeline for pipeline in PIPELINES if pipeline != done[1]]
-
-    # Another machine: a fresh clone of what was committed, an empty DVC cache.
-    resumed = clone(killed, tmp_path / "resumed", url)
-    since = head(resumed)
-    nothing = suite_run(resumed, "--only", done[1])
-    assert nothing.returncode == 0, nothing.stdout + nothing.stderr
-    assert f"suite: nothing to build among {done[1]}; still to build: {rest}" in nothing.stdout
-    again = suite_run(resumed, "--commit")
-    assert again.returncode == 0, again.stdout + again.stderr
-    lines = again.stdout.splitlines()
-    assert [line for line in lines if line.startswith("started")] == [f"started  {rest}"]
-    assert [re.sub(r" in \d+ s$", "", s) for s in subjects(resumed, since)] == [
-        f"suite run: {rest} built at protocol {version}",
-        f"suite run: {SUITE} (the leaderboard) built at protocol {version}, every pipeline current",
-    ]
-    # Byte for byte the one-go build: every tracked file (locks, results, leaderboard).
-    assert locks(resumed) == locks(one_go)
-    tree = "HEAD^{tree}"
-    assert (
-        run(resumed, "git", "rev-parse", tree).stdout
-        == run(one_go, "git", "rev-parse", tree).stdout
-    )
-    # The migration has ended: from git alone, nothing is left to build or commit.
-    last = head(resumed)
-    ended = suite_run(resumed, "--commit")
-    assert ended.returncode == 0, ended.stdout + ended.stderr
-    assert ended.stdout.splitlines()[-1].endswith("nothing to run"), ended.stdout
-    assert head(resumed) == last  # no commit
 
 
 @pytest.fixture

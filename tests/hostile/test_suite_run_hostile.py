@@ -140,7 +140,7 @@ def test_a_ray_address_that_is_not_ray_is_refused_in_seconds(http_server, tmp_pa
     assert seconds < suite_run.RAY_HANDSHAKE_S + 10
 
 
-# A real Ray head passes the handshake: tests/test_suite_run.py's Ray test (one cluster a run).
+# A real Ray head passes the handshake: tests/test_suite_run_ray.py (one cluster a run).
 
 
 # -- 3. the checks that need no DVC first, and a line at once ----------------------------------
