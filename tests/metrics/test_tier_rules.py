@@ -278,3 +278,62 @@ def test_the_tier_tables_show_both_rules(params, records):
     assert cells[5].startswith(f"{aware['detection_rate']:.2f} [")
     assert cells[6].endswith(f"(n = {aware['delay']['n_detected']})")
     assert math.isclose(float(cells[-1]), mild["metrics"]["matched_auroc"]["mean"], abs_tol=5e-4)
+
+
+def test_load_results_has_a_row_a_metric_of_each_rule_and_the_alpha_curves_when_asked(
+    params, records, tmp_path
+):
+    import oodrl
+    from oodrl.errors import ConfigError
+
+    everything = [r for part in records.values() for r in part]
+    path = tmp_path / "tier_results.yaml"
+    path.write_text(yamlio.dump({"protocol_version": 4, "records": everything}))
+    k, alpha, prefix = params.tiers.k, params.tiers.alpha, "time_aware_"
+    keys = ["fault", "tier", "detector", "metric", "alpha"]
+
+    frame = oodrl.load_results(path)
+    aware = [r for r in everything if r["time_aware"]["operating_point"] is not None]
+    assert 0 < len(aware) < len(everything)  # DETECTORS[1] has too few ID scores for the rule
+    assert len(frame) == sum(5 + len(r["metrics"]) for r in everything) + 5 * len(aware)
+    assert not frame.duplicated(keys).any()
+    assert set(frame.alpha.dropna()) == {alpha}  # the operating points only, by default
+    for record in everything:
+        where = (
+            (frame.fault == record["injector"]) & (frame.tier == record["tier"])
+            & (frame.detector == record["detector"])
+        )  # fmt: skip
+        for name, point in (("", record["operating_point"]),
+                            (prefix, record["time_aware"]["operating_point"])):  # fmt: skip
+            rows = frame[where & (frame.metric == f"{name}detection_rate@{k}")]
+            if point is None:
+                assert rows.empty
+                continue
+            [row] = rows.itertuples()
+            assert [row.value, row.ci_low, row.ci_high, row.n_streams, row.alpha] == [
+                point["detection_rate"], *point["detection_rate_ci"], point["n_faulty"], alpha,
+            ]  # fmt: skip
+            [alarms] = frame[where & (frame.metric == f"{name}clean_false_alarm_rate")].itertuples()
+            assert (alarms.value, alarms.n_streams) == (point["clean_false_alarm_rate"], 200)
+
+    curves = oodrl.load_results(path, kind="tiers", alpha_curves=True)
+    assert not curves.duplicated(keys).any()
+    # The curve at the tier's α is the operating point: the default frame, row for row.
+    at_alpha = curves[curves.alpha.isna() | (curves.alpha == alpha)].reset_index(drop=True)
+    assert at_alpha.equals(frame)
+    # Each rule's other supported α (200 calibration streams at δ = 0.1 support all but 0.01).
+    others = [a for a in ALPHAS if a not in (alpha, 0.01)]
+    assert len(curves) == len(frame) + 5 * len(others) * (len(everything) + len(aware))
+    mild = next(r for r in aware if r["tier"] == "mild")
+    entry = next(e for e in mild["alpha_curve"]["time_aware"] if e["alpha"] == 0.1)
+    [row] = curves[
+        (curves.fault == mild["injector"]) & (curves.tier == "mild")
+        & (curves.detector == mild["detector"]) & (curves.alpha == 0.1)
+        & (curves.metric == f"{prefix}detection_rate@{k}")
+    ].itertuples()  # fmt: skip
+    assert [row.value, row.ci_low, row.ci_high, row.n_streams] == [
+        entry["detection_rate"], *entry["detection_rate_ci"], N_STREAMS,
+    ]  # fmt: skip
+
+    with pytest.raises(ConfigError, match="alpha_curves=True asks for the tier results' α curv"):
+        oodrl.load_results(path, kind="results", alpha_curves=True)

@@ -12,8 +12,8 @@ neither imports pandas, numpy or torch.
 
 Results frames are tidy: one row per environment, policy, fault, tier, detector and metric,
 with the columns `env`, `policy`, `fault`, `tier`, `detector`, `metric`, `value`, `ci_low`,
-`ci_high`, `n_streams`, `severity`, `mode`, `verified` and `family` (None or NaN where a
-results file has no such value).
+`ci_high`, `n_streams`, `alpha`, `severity`, `mode`, `verified`, `family` and `protocol` (None
+or NaN where a results file has no such value).
 """
 
 from __future__ import annotations

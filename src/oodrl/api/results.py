@@ -29,7 +29,7 @@ if TYPE_CHECKING:
 #: Every results frame's columns, in order.
 COLUMNS = (
     "env", "policy", "fault", "tier", "detector", "metric", "value", "ci_low", "ci_high",
-    "n_streams", "severity", "mode", "verified", "family", "protocol",
+    "n_streams", "alpha", "severity", "mode", "verified", "family", "protocol",
 )  # fmt: skip
 #: kind -> the file holding it, relative to a pipeline's (or the suite's) directory.
 PIPELINE_FILES = {
@@ -59,7 +59,9 @@ NULL_TIER = "null"
 SWEEP_TIER = "sweep"
 
 
-def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFrame:
+def load_results(
+    where: str | Path = ".", kind: str | None = None, *, alpha_curves: bool = False
+) -> pd.DataFrame:
     """Load a pipeline's or the suite's results as one tidy DataFrame.
 
     Parameters
@@ -80,7 +82,9 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
           (``benign``, ``mild``, ``moderate``, ``severe``) at the per-stream false-alarm
           budget α: ``detection_rate@K`` with its Clopper-Pearson CI, the delays of the
           detected streams, the achieved clean false-alarm rate and every per-episode
-          metric with its bootstrap CI;
+          metric with its bootstrap CI; from protocol version 4 also the time-aware
+          per-stream rule's operating point (SPEC §24), its metrics named with the prefix
+          ``time_aware_`` (``time_aware_detection_rate@K``, ...), where the record has one;
         - ``"sweep"``: ``reports/sweep_results.yaml``, every severity of the sweep (tier
           ``"sweep"``, the severity in ``severity``).
 
@@ -96,6 +100,12 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
         ``"results"``, ``"tiers"`` and ``"sweep"`` of the suite concatenate those of all its
         runs (the tiers of 21 runs take minutes, see Notes). For a file, its name says its
         kind.
+    alpha_curves : bool, default False
+        With ``kind="tiers"`` only: also each rule's operating point at every other α of its
+        α curve (protocol version 4's records), the same metrics as the operating point's at
+        their own ``alpha``. Off by default so that a query by metric finds one row a record:
+        the operating point at the pipeline's α (``tiers.alpha``). An α that the calibration
+        streams cannot support under the threshold rule has no rows.
 
     Returns
     -------
@@ -103,7 +113,8 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
         One row per environment, policy, fault, tier, detector and metric, with the columns
         ``env``, ``policy`` (``"0"`` for an environment's first policy), ``fault``, ``tier``,
         ``detector``, ``metric``, ``value``, ``ci_low``, ``ci_high``, ``n_streams`` (the
-        streams or episodes behind the value), ``severity`` (σ of the fault),
+        streams or episodes behind the value), ``alpha`` (the per-stream false-alarm budget of
+        an operating point's row; NaN on other rows), ``severity`` (σ of the fault),
         ``mode`` (``online`` or ``posthoc``), ``verified`` (whether the tier's severity was
         verified, SPEC §19) and ``family`` (observation, action or dynamics), None or NaN
         where the results hold no such value, and ``protocol``, the protocol version of the
@@ -137,7 +148,12 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
     """
     import pandas as pd
 
-    rows, attrs = _load_rows(where, kind)
+    if alpha_curves and kind != "tiers":
+        raise ConfigError(
+            f"alpha_curves=True asks for the tier results' α curves, so kind must be 'tiers'; "
+            f"got {kind!r}."
+        )
+    rows, attrs = _load_rows(where, kind, alpha_curves)
     columns = RANKING_COLUMNS if attrs["kind"] == "ranking" else COLUMNS
     frame = pd.DataFrame.from_records(list(rows), columns=list(columns))
     frame["protocol"] = attrs["protocol_version"]  # one version a frame (see _suite_rows)
@@ -145,14 +161,16 @@ def load_results(where: str | Path = ".", kind: str | None = None) -> pd.DataFra
     return frame
 
 
-def _load_rows(where: str | Path, kind: str | None) -> tuple[Iterable[dict], dict]:
+def _load_rows(
+    where: str | Path, kind: str | None, alpha_curves: bool = False
+) -> tuple[Iterable[dict], dict]:
     if kind is not None and kind not in KINDS:
         raise ConfigError(f"kind {kind!r} is not a kind of results. Allowed: {', '.join(KINDS)}.")
     path = resolve_directory(where, "where")
     if path.is_file():
-        return _file_rows(path, kind)
+        return _file_rows(path, kind, alpha_curves)
     if is_suite(path):
-        return _suite_rows(path, kind or "leaderboard")
+        return _suite_rows(path, kind or "leaderboard", alpha_curves)
     if is_pipeline(path):
         kind = kind or "results"
         if kind not in PIPELINE_FILES:
@@ -160,7 +178,7 @@ def _load_rows(where: str | Path, kind: str | None) -> tuple[Iterable[dict], dic
                 f"kind {kind!r} is the suite's (pass the suite directory, pipeline/suite); a "
                 f"pipeline's kinds: {', '.join(PIPELINE_FILES)}."
             )
-        return _pipeline_rows(pipeline_at(path), kind)
+        return _pipeline_rows(pipeline_at(path), kind, alpha_curves)
     raise ConfigError(
         f"where {str(where)!r}: a directory that is neither a pipeline (params.yaml and "
         "dvc.yaml) nor the suite (pipeline/suite). Allowed: a pipeline directory, the suite "
@@ -168,7 +186,7 @@ def _load_rows(where: str | Path, kind: str | None) -> tuple[Iterable[dict], dic
     )
 
 
-def _file_rows(path: Path, kind: str | None) -> tuple[Iterable[dict], dict]:
+def _file_rows(path: Path, kind: str | None, alpha_curves: bool) -> tuple[Iterable[dict], dict]:
     file_kind = FILE_KINDS.get(path.name)
     if file_kind is None:
         raise ConfigError(
@@ -184,15 +202,17 @@ def _file_rows(path: Path, kind: str | None) -> tuple[Iterable[dict], dict]:
         return _board_rows(read_json(path), kind, path)
     pipeline_dir = path.parent.parent
     pipeline = pipeline_at(pipeline_dir) if is_pipeline(pipeline_dir) else None
-    return _document_rows(read_yaml(path), kind, pipeline, path)
+    return _document_rows(read_yaml(path), kind, pipeline, path, alpha_curves)
 
 
-def _pipeline_rows(pipeline: Pipeline, kind: str) -> tuple[Iterable[dict], dict]:
+def _pipeline_rows(
+    pipeline: Pipeline, kind: str, alpha_curves: bool
+) -> tuple[Iterable[dict], dict]:
     path = pipeline.directory / PIPELINE_FILES[kind]
-    return _document_rows(read_yaml(path), kind, pipeline, path)
+    return _document_rows(read_yaml(path), kind, pipeline, path, alpha_curves)
 
 
-def _suite_rows(directory: Path, kind: str) -> tuple[Iterable[dict], dict]:
+def _suite_rows(directory: Path, kind: str, alpha_curves: bool) -> tuple[Iterable[dict], dict]:
     if kind in SUITE_FILES:
         path = directory / SUITE_FILES[kind]
         return _board_rows(read_json(path), kind, path)
@@ -205,7 +225,7 @@ def _suite_rows(directory: Path, kind: str) -> tuple[Iterable[dict], dict]:
     versions: dict[str, dict[str, Any]] = {}
     for relative in suite_runs().values():
         pipeline = pipeline_at(root / relative)
-        found, attrs = _pipeline_rows(pipeline, kind)
+        found, attrs = _pipeline_rows(pipeline, kind, alpha_curves)
         rows.extend(found)
         files.extend(attrs["files"])
         versions[attrs["files"][0]] = {"protocol_version": attrs["protocol_version"]}
@@ -215,7 +235,7 @@ def _suite_rows(directory: Path, kind: str) -> tuple[Iterable[dict], dict]:
 
 
 def _document_rows(
-    document: Any, kind: str, pipeline: Pipeline | None, path: Path
+    document: Any, kind: str, pipeline: Pipeline | None, path: Path, alpha_curves: bool
 ) -> tuple[Iterable[dict], dict]:
     if not isinstance(document, Mapping):
         raise StoreError(f"{path}: not a results file (a mapping of records).")
@@ -234,7 +254,7 @@ def _document_rows(
     if not isinstance(document.get("records"), list):
         raise StoreError(f"{path}: not a results file (no 'records' list).")
     if kind == "tiers":
-        return list(tier_rows(document["records"], env, policy)), attrs
+        return list(tier_rows(document["records"], env, policy, alpha_curves)), attrs
     return list(results_rows(document["records"], env, policy)), attrs
 
 
@@ -312,7 +332,14 @@ def _family(fault: str | None) -> str | None:
     return fault_family(fault) if fault else None
 
 
-def _row(base: Mapping[str, Any], metric: str, value: Any, ci: Any = None, n: Any = None) -> dict:
+def _row(
+    base: Mapping[str, Any],
+    metric: str,
+    value: Any,
+    ci: Any = None,
+    n: Any = None,
+    alpha: Any = None,
+) -> dict:
     low, high = ci if isinstance(ci, list | tuple) and len(ci) == 2 else (None, None)
     return {
         **base,
@@ -321,6 +348,7 @@ def _row(base: Mapping[str, Any], metric: str, value: Any, ci: Any = None, n: An
         "ci_low": _number(low),
         "ci_high": _number(high),
         "n_streams": _number(n),
+        "alpha": _number(alpha),
     }
 
 
@@ -332,19 +360,52 @@ def metric_rows(base: Mapping[str, Any], metrics: Mapping[str, Any]) -> Iterator
             yield _row(base, name, stats.get("mean"), ci, stats.get("n_episodes"))
 
 
-def operating_rows(base: Mapping[str, Any], point: Mapping[str, Any]) -> Iterator[dict]:
+def operating_rows(
+    base: Mapping[str, Any], point: Mapping[str, Any], prefix: str = ""
+) -> Iterator[dict]:
     """The rows of a per-stream operating point (`oodrl.metrics.operating`): the detection
-    rate within K with its CI, the delays of the detected streams, the false-alarm rates."""
-    k = point.get("k")
+    rate within K with its CI, the delays of the detected streams, the false-alarm rates, at
+    the point's α; `prefix` names the rule where it is not the constant one (`time_aware_`)."""
+    k, alpha = point.get("k"), point.get("alpha")
     delay = point.get("delay") or {}
     n_faulty = point.get("n_faulty")
-    yield _row(base, f"detection_rate@{k}", point.get("detection_rate"),
-               point.get("detection_rate_ci"), n_faulty)  # fmt: skip
-    yield _row(base, f"delay_median@{k}", delay.get("median"), None, delay.get("n_detected"))
-    yield _row(base, f"delay_p90@{k}", delay.get("p90"), None, delay.get("n_detected"))
-    yield _row(base, "clean_false_alarm_rate", point.get("clean_false_alarm_rate"),
-               point.get("clean_false_alarm_ci"), point.get("n_clean"))  # fmt: skip
-    yield _row(base, "early_false_alarm_rate", point.get("early_false_alarm_rate"), None, n_faulty)
+
+    def row(metric: str, value: Any, ci: Any, n: Any) -> dict:
+        return _row(base, prefix + metric, value, ci, n, alpha)
+
+    yield row(f"detection_rate@{k}", point.get("detection_rate"), point.get("detection_rate_ci"),
+              n_faulty)  # fmt: skip
+    yield row(f"delay_median@{k}", delay.get("median"), None, delay.get("n_detected"))
+    yield row(f"delay_p90@{k}", delay.get("p90"), None, delay.get("n_detected"))
+    yield row("clean_false_alarm_rate", point.get("clean_false_alarm_rate"),
+              point.get("clean_false_alarm_ci"), point.get("n_clean"))  # fmt: skip
+    yield row("early_false_alarm_rate", point.get("early_false_alarm_rate"), None, n_faulty)
+
+
+def rule_points(record: Mapping[str, Any], alpha_curves: bool) -> Iterator[tuple[str, dict]]:
+    """A tier record's per-stream operating points as (metric prefix, point): the constant
+    rule's, then the time-aware rule's where the record has one (protocol version 4, SPEC
+    §24); with `alpha_curves`, each rule's α-curve entries at its other supported α, which keep
+    K and the stream counts of the rule's operating point (`oodrl.metrics.tiers.CURVE_KEYS`)."""
+    from oodrl.metrics.leaderboard import TIME_AWARE_PREFIX
+    from oodrl.metrics.time_aware import RULES
+
+    points = {
+        "constant": record.get("operating_point") or {},  # rows of NaN where it has none
+        "time_aware": (record.get("time_aware") or {}).get("operating_point"),
+    }
+    curves = record.get("alpha_curve") or {}
+    for rule in RULES:
+        point = points[rule]
+        if point is None:  # no time-aware rule: an older protocol, or too few ID scores
+            continue
+        prefix = "" if rule == "constant" else TIME_AWARE_PREFIX
+        yield prefix, point
+        if alpha_curves:
+            counts = {key: point.get(key) for key in ("k", "n_faulty", "n_clean")}
+            for entry in curves.get(rule) or ():
+                if entry.get("supported", True) and entry.get("alpha") != point.get("alpha"):
+                    yield prefix, {**counts, **entry}
 
 
 def _base(env, policy, fault, tier, detector, severity, mode, verified) -> dict[str, Any]:
@@ -355,12 +416,19 @@ def _base(env, policy, fault, tier, detector, severity, mode, verified) -> dict[
     }  # fmt: skip
 
 
-def tier_rows(records: Iterable[Mapping[str, Any]], env: str | None, policy: str | None):
-    """Rows of tier_results.yaml's records (`oodrl.metrics.tiers`)."""
+def tier_rows(
+    records: Iterable[Mapping[str, Any]],
+    env: str | None,
+    policy: str | None,
+    alpha_curves: bool = False,
+):
+    """Rows of tier_results.yaml's records (`oodrl.metrics.tiers`): each rule's operating
+    point (`rule_points`), then the per-episode metrics."""
     for r in records:
         base = _base(env, policy, r.get("injector"), r.get("tier"), r.get("detector"),
                      r.get("severity"), r.get("mode"), r.get("verified"))  # fmt: skip
-        yield from operating_rows(base, r.get("operating_point") or {})
+        for prefix, point in rule_points(r, alpha_curves):
+            yield from operating_rows(base, point, prefix)
         yield from metric_rows(base, r.get("metrics") or {})
 
 
