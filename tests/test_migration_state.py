@@ -160,7 +160,8 @@ def test_the_check_names_each_stale_project_in_a_line(repo):
     lines = str(error.value).splitlines()
     assert lines[0].startswith("1 of 22 projects are stale")
     assert lines[1:] == [
-        f"{PROJECT}: stale (protocol 3): check_params: params.yaml changed since its lock"
+        f"{PROJECT}: stale (protocol {stamp.PROTOCOL_VERSION}): check_params: params.yaml "
+        "changed since its lock"
     ]
 
 
