@@ -96,6 +96,26 @@ def built_repo(tmp_path_factory, repo_root, _default_params) -> Path:
 
 
 @pytest.fixture(scope="session")
+def serial_locks(tmp_path_factory, repo_root) -> dict[str, bytes]:
+    """The locks a serial build of the two-environment suite writes: the build a test run makes
+    once (tests/suite_repo.py serial_built_suite; test_suite_try, test_remote and the migration
+    lab copy it too), which `oodrl suite run` must leave byte for byte."""
+    from suite_repo import head_commit, locks, run_folder, serial_built_suite
+
+    built, _ = serial_built_suite(repo_root, head_commit(repo_root), run_folder(tmp_path_factory))
+    return locks(built)
+
+
+@pytest.fixture
+def fresh_suite(repo_root, tmp_path) -> Path:
+    """The two-environment suite (tests/suite_repo.py), committed and not built, in a copy of
+    its own."""
+    from suite_repo import head_commit, two_environment_suite
+
+    return two_environment_suite(repo_root, head_commit(repo_root), tmp_path / "repo")
+
+
+@pytest.fixture(scope="session")
 def heuristic_clean():
     """Eight clean LunarLander streams of T=300 from gymnasium's heuristic controller."""
     from rollout_policies import HeuristicPolicy

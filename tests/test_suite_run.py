@@ -4,18 +4,8 @@ byte. (On a Ray cluster that loses a node mid-task: tests/test_suite_run_ray.py.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
-from suite_repo import (
-    SUITE,
-    checkout,
-    head_commit,
-    locks,
-    run_folder,
-    serial_built_suite,
-    two_environment_suite,
-)
+from suite_repo import SUITE, checkout, locks
 from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
 
@@ -25,24 +15,6 @@ from oodrl.suite.run import RUN_META, _up_to_date, run_suite
 from oodrl.testing.pipeline import run
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="session")
-def commit(repo_root) -> str:
-    return head_commit(repo_root)
-
-
-@pytest.fixture(scope="session")
-def serial_locks(tmp_path_factory, repo_root, commit) -> dict[str, bytes]:
-    """The locks a serial build of the two-environment suite writes: the build a test run makes
-    once (suite_repo.serial_built_suite; test_suite_try and test_remote copy it too)."""
-    built, _ = serial_built_suite(repo_root, commit, run_folder(tmp_path_factory))
-    return locks(built)
-
-
-@pytest.fixture
-def fresh_suite(repo_root, commit, tmp_path) -> Path:
-    return two_environment_suite(repo_root, commit, tmp_path / "repo")
 
 
 def test_local_workers_leave_the_locks_of_a_serial_run(fresh_suite, serial_locks):

@@ -10,30 +10,11 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
-from suite_repo import (
-    SUITE,
-    head_commit,
-    locks,
-    run_folder,
-    serial_built_suite,
-    two_environment_suite,
-)
+from suite_repo import SUITE, locks
 
 from oodrl.suite.run import _check_reachable, run_suite
 
 pytestmark = pytest.mark.slow
-
-
-@pytest.fixture(scope="session")
-def serial_locks(tmp_path_factory, repo_root) -> dict[str, bytes]:
-    """The locks of the test run's one serial build of the two-environment suite."""
-    built, _ = serial_built_suite(repo_root, head_commit(repo_root), run_folder(tmp_path_factory))
-    return locks(built)
-
-
-@pytest.fixture
-def fresh_suite(repo_root, tmp_path) -> Path:
-    return two_environment_suite(repo_root, head_commit(repo_root), tmp_path / "repo")
 
 
 @pytest.fixture
