@@ -18,37 +18,34 @@ from __future__ import annotations
 
 import pytest
 
-#: Seconds a module's tests took (setup, call and teardown summed, from the junit file of
-#: `.ci/run` at 32f1e4b: `pytest -n 2` beside CI's reproducibility check, on a 2-core machine), for
-#: the modules over 40 s. A group's first module pays its shared build (test_remote's 885 s hold
-#: the serial suite's). Only the order reads them: a stale or missing entry costs time, never a
-#: result.
+#: Seconds a module's tests took (setup, call and teardown summed, from the junit file of the
+#: README's test command in a fresh clone of 7605109 on an idle 2-core machine: 2,777 s of worker
+#: time in 1,421 s), for the modules over 40 s. A group's first module pays its shared build (the
+#: serial suite's). Only the order reads them: a stale or missing entry costs time, never a result.
 COST_S: dict[str, float] = {
-    "tests/test_suite_run.py": 939,
-    "tests/test_remote.py": 886,
-    "tests/test_migration.py": 507,
-    "tests/api/test_evaluate.py": 486,
-    "tests/metrics/test_leaderboard_rliable.py": 90,  # 424 reading all 21 runs; now six
-    "tests/pipeline/test_pipeline.py": 402,
-    "tests/pipeline/test_failures.py": 393,
-    "tests/test_protocol_every_environment.py": 358,
-    "tests/pipeline/test_deps.py": 240,
-    "tests/test_readme.py": 237,
-    "tests/pipeline/test_warm.py": 159,
-    "tests/test_suite_try.py": 151,
-    "tests/pipeline/test_environments.py": 146,
-    "tests/hostile/test_runtime_hostile.py": 138,
-    "tests/test_new.py": 133,
-    "tests/detectors/test_library.py": 119,
-    "tests/test_readonly_remote.py": 109,
-    "tests/test_suite.py": 80,
-    "tests/pipeline/test_recovery.py": 71,
+    "tests/test_readme.py": 164,
+    "tests/pipeline/test_pipeline.py": 138,
+    "tests/test_protocol_every_environment.py": 137,
+    "tests/test_suite_run_ray.py": 125,
+    "tests/test_migration_resume.py": 117,
+    "tests/test_suite_run.py": 117,
+    "tests/test_remote.py": 113,
+    "tests/api/test_evaluate.py": 105,
+    "tests/test_suite.py": 100,
+    "tests/hostile/test_runtime_hostile.py": 99,
+    "tests/pipeline/test_deps.py": 98,
+    "tests/test_migration.py": 98,
+    "tests/pipeline/test_environments.py": 97,
+    "tests/pipeline/test_failures.py": 86,
+    "tests/test_new.py": 86,
+    "tests/test_readonly_remote.py": 76,
+    "tests/test_suite_try.py": 72,
+    "tests/pipeline/test_warm.py": 69,
     "tests/test_recorded.py": 67,
-    "tests/faults/test_remote_faults.py": 58,
-    "tests/report/test_leaderboard_page.py": 48,
-    "tests/hostile/test_suite_run_hostile.py": 42,
-    "tests/api/test_examples.py": 41,
-    "tests/policies/test_train.py": 40,
+    "tests/metrics/test_leaderboard_rliable.py": 56,
+    "tests/detectors/test_library.py": 46,
+    "tests/report/test_leaderboard_page.py": 44,
+    "tests/faults/test_remote_faults.py": 43,
 }
 #: What a module without an entry in COST_S counts when it holds a test marked `slow`.
 SLOW_S = 50.0
