@@ -317,6 +317,7 @@ def test_load_results_has_a_row_a_metric_of_each_rule_and_the_alpha_curves_when_
             assert (alarms.value, alarms.n_streams) == (point["clean_false_alarm_rate"], 200)
 
     curves = oodrl.load_results(path, kind="tiers", alpha_curves=True)
+    assert curves.equals(oodrl.load_results(path, alpha_curves=True))  # the file's name says tiers
     assert not curves.duplicated(keys).any()
     # The curve at the tier's α is the operating point: the default frame, row for row.
     at_alpha = curves[curves.alpha.isna() | (curves.alpha == alpha)].reset_index(drop=True)
@@ -336,4 +337,6 @@ def test_load_results_has_a_row_a_metric_of_each_rule_and_the_alpha_curves_when_
     ]  # fmt: skip
 
     with pytest.raises(ConfigError, match="alpha_curves=True asks for the tier results' α curv"):
-        oodrl.load_results(path, kind="results", alpha_curves=True)
+        results = tmp_path / "results.yaml"  # its name says kind "results"
+        results.write_text(yamlio.dump({"protocol_version": 4, "records": []}))
+        oodrl.load_results(results, alpha_curves=True)

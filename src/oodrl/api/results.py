@@ -148,12 +148,12 @@ def load_results(
     """
     import pandas as pd
 
-    if alpha_curves and kind != "tiers":
+    rows, attrs = _load_rows(where, kind, alpha_curves)
+    if alpha_curves and attrs["kind"] != "tiers":  # the kind a file's name or a directory gives
         raise ConfigError(
             f"alpha_curves=True asks for the tier results' α curves, so kind must be 'tiers'; "
-            f"got {kind!r}."
+            f"got {attrs['kind']!r}."
         )
-    rows, attrs = _load_rows(where, kind, alpha_curves)
     columns = RANKING_COLUMNS if attrs["kind"] == "ranking" else COLUMNS
     frame = pd.DataFrame.from_records(list(rows), columns=list(columns))
     frame["protocol"] = attrs["protocol_version"]  # one version a frame (see _suite_rows)
