@@ -317,6 +317,17 @@ def test_a_signal_where_python_cannot_raise_it_is_not_a_traceback(workdir):
 # moment, from a finder importlib asks first for torch's C extension.
 SIGNAL_IN_TORCH = """
 import signal, sys, threading, time
+import oodrl.io.store
+
+original = oodrl.io.store.write_store
+
+def write_store(*args, **kwargs):
+    # The command's work goes on after torch's import: the signal, delivered once torch is
+    # whole, must stop it before the store, however late a loaded machine runs its delivery.
+    time.sleep(5)
+    return original(*args, **kwargs)
+
+oodrl.io.store.write_store = write_store
 
 class Tripwire:
     fired = False
