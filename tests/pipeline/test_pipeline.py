@@ -173,11 +173,20 @@ def test_detector_param_reruns_only_that_detector(repo):
     ])  # fmt: skip
 
 
-def test_headline_severity_reruns_the_headline_sets_and_their_scoring_only(repo):
+def test_headline_severity_experiment_reruns_the_headline_sets_and_their_scoring_only(repo):
+    """`dvc exp run -S anomaly.severity=…` runs what a `dvc repro` after that edit would (one
+    run checks both: the stages it runs, and `dvc metrics diff` against the committed run; a
+    repro and an experiment of such an edit took 50 s on a loaded machine, this 31 s)."""
+    run(repo, "git", "add", "-A")
+    run(repo, "git", "commit", "-q", "-m", "baseline run")
     before = lock_hashes(repo)
-    edit_params(repo, lambda p: p["anomaly"].update(severity=0.7))
-    ran = repro(repo)
-    after = lock_hashes(repo)
+    done = run(repo, "dvc", "exp", "run", "-S", "anomaly.severity=0.7")
+    ran = sorted(
+        line.split("'")[1]
+        for line in (done.stdout + done.stderr).splitlines()
+        if line.startswith("Running stage '")
+    )
+    after = lock_hashes(repo)  # the experiment's results and locks stay in the workspace
     # The sweeps and tier streams are scored by a stage of their own (SPEC §23): not re-run.
     for d in DETECTORS:
         for i in INJECTORS:
@@ -189,12 +198,6 @@ def test_headline_severity_reruns_the_headline_sets_and_their_scoring_only(repo)
         *(detector_stage(d, stage) for d in DETECTORS for stage in ("score", "cells")),
         "metrics", "render", "tier_metrics",
     ])  # fmt: skip
-
-
-def test_experiment_and_metrics_diff(repo):
-    run(repo, "git", "add", "-A")
-    run(repo, "git", "commit", "-q", "-m", "baseline run")
-    run(repo, "dvc", "exp", "run", "-S", "anomaly.severity=0.9")
     diff = run(repo, "dvc", "metrics", "diff", "--json").stdout
     changes = json.loads(diff)["reports/metrics.json"]
     assert any(v["diff"] not in (0, None) for v in changes.values()), changes
