@@ -579,20 +579,32 @@ def rendered_detector(pipeline_dir: Path, root: Path, detector: str) -> str:
     from oodrl.config import read_params_data
 
     params = read_params_data(pipeline_dir / PARAMS_FILE)
+    project = Project(root.resolve(), pipeline_dir.resolve())
+    policy = policy_file(detector, params, project)
+    return _detector_text(pipeline_dir, root, params, policy).replace("${detector}", detector)
+
+
+def _detector_text(
+    pipeline_dir: Path, root: Path, params: dict[str, Any], policy: str | None
+) -> str:
+    """The detector template rendered for a pipeline, `${detector}` left in: every detector of
+    the pipeline whose fit reads `policy` (None: no policy file) has this text, its name put in.
+    Rendering it once per policy rather than per detector is what makes `oodrl pipeline write`
+    fast: the round trip through ruamel (comments kept) is most of its time."""
     document = _yaml().load(DETECTOR_TEMPLATE.read_text())
     stages = document["stages"]
     if is_recorded(params):
         _as_recorded(stages)
     _write_out_lists(stages, params)
     _add_stamps(stages)
-    _add_policy_dep(stages, detector, params, Project(root.resolve(), pipeline_dir.resolve()))
+    _add_policy_dep(stages, policy)
     if pipeline_dir.resolve() != root.resolve():
         _read_merged_params(stages, params)
     for name, body in _stage_bodies(stages):
         if "foreach" in stages[name]:
             stages[name]["foreach"] = _flow(_values(stages[name]["foreach"], params))
         body.insert(0, "wdir", WDIR)
-    return _dumped(document).replace("${detector}", detector)
+    return _dumped(document)
 
 
 def policy_file(detector: str, params: dict[str, Any], project: Project) -> str | None:
@@ -621,12 +633,9 @@ def policy_file(detector: str, params: dict[str, Any], project: Project) -> str 
     return named or str(cls.policy)
 
 
-def _add_policy_dep(
-    stages: dict[str, Any], detector: str, params: dict[str, Any], project: Project
-) -> None:
+def _add_policy_dep(stages: dict[str, Any], policy: str | None) -> None:
     """A detector that reads the policy (`policy_file`) has its fit stage depend on the file:
     a retrained policy refits it (the fitted detector keeps the policy's network)."""
-    policy = policy_file(detector, params, project)
     if policy is None:
         return
     for _, body in _stage_bodies(stages):
@@ -866,10 +875,15 @@ def pipeline_files(pipeline_dir: Path, root: Path) -> dict[Path, str]:
     from oodrl.config import read_params_data
     from oodrl.io.layout import detector_pipeline
 
-    detectors = read_params_data(pipeline_dir / PARAMS_FILE)["benchmark"]["detectors"]
+    params = read_params_data(pipeline_dir / PARAMS_FILE)
+    project = Project(root.resolve(), pipeline_dir.resolve())
     files = {pipeline_dir / "dvc.yaml": rendered(pipeline_dir, root)}
-    for detector in detectors:
-        text = rendered_detector(pipeline_dir, root, detector)
+    texts: dict[str | None, str] = {}  # _detector_text by policy file: a few, not a detector's
+    for detector in params["benchmark"]["detectors"]:
+        policy = policy_file(detector, params, project)
+        if policy not in texts:
+            texts[policy] = _detector_text(pipeline_dir, root, params, policy)
+        text = texts[policy].replace("${detector}", detector)
         files[pipeline_dir / detector_pipeline(detector)] = text
     return files
 
