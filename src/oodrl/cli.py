@@ -888,7 +888,19 @@ def _importing_torch() -> bool:
     return bool(getattr(spec, "_initializing", False))
 
 
-def _raised_while_unwinding(error: BaseException) -> bool:
+def _removing_a_folder(frame: object) -> bool:
+    """Whether `frame` is inside shutil.rmtree: a store's `finally` removing its temporary
+    folder, which an interrupt raised there would leave half removed."""
+    rmtree = getattr(sys.modules.get("shutil"), "rmtree", None)
+    code = getattr(rmtree, "__code__", None)
+    while frame is not None and code is not None:
+        if frame.f_code is code:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _raised_while_unwinding(error: BaseException | None) -> bool:
     """Whether `error` was raised while a KeyboardInterrupt (a signal, see `main`) unwound."""
     seen = set()
     while error is not None and id(error) not in seen:
@@ -907,20 +919,35 @@ def main() -> None:
     oodrl did not expect is one line naming it and exit 1, its traceback only with OODRL_DEBUG=1.
     """
     import signal
+    import threading
 
     received: list[signal.Signals] = []
     finished = False  # the command has returned: a signal now has nothing left to unwind
+    # An interrupt raised in C code that calls back into Python (an extension module's init
+    # importing a module) can be swallowed there; a command still running this long after it
+    # was raised gets it again, so it stops instead of running to its end.
+    still_running_check_s = 0.25
+    redeliveries: list[threading.Timer] = []
 
     def interrupt(signum: int, frame: object) -> None:
         received.append(signal.Signals(signum))
         if finished:
             return  # its outputs are whole; raising now would only print a traceback at exit
-        if _importing_torch():
+        if signal.getsignal(signum) is not interrupt:
+            # Chained from another handler (`suite run`'s), which raises itself and decides
+            # what a second signal means: a redelivery would look like one.
+            return
+        if _importing_torch() or _removing_a_folder(frame):
             # Raised inside torch's initialisation, the interrupt can abort the process (C++
-            # code that meets the pending exception terminates): deliver it once torch is whole.
+            # code that meets the pending exception terminates); raised inside a temporary
+            # folder's removal, it leaves the folder half removed: deliver it once either is done.
             deliver_again(0.05)
             return
+        if _raised_while_unwinding(sys.exc_info()[1]):
+            deliver_again(still_running_check_s)  # already unwinding: only check it ends
+            return
         _settle_store_writes()
+        deliver_again(still_running_check_s)
         raise KeyboardInterrupt
 
     def unraisable(report) -> None:
@@ -933,17 +960,21 @@ def main() -> None:
             deliver_again(0.01)
 
     def deliver_again(after_s: float) -> None:
-        redelivery = threading.Timer(after_s, os.kill, (os.getpid(), received[-1]))
+        def deliver() -> None:
+            if not finished:
+                os.kill(os.getpid(), received[-1])
+
+        redeliveries[:] = [timer for timer in redeliveries if timer.is_alive()]
+        redelivery = threading.Timer(after_s, deliver)
         redelivery.daemon = True
         redelivery.start()
+        redeliveries.append(redelivery)
 
     def interrupted() -> NoReturn:
         # typer turns a KeyboardInterrupt into exit code 130 silently; say which signal it was.
         name = received[0] if received else signal.SIGINT
         typer.echo(f"error: interrupted ({name.name})", err=True)
         sys.exit(128 + name.value)
-
-    import threading
 
     for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         if signal.getsignal(signum) in (signal.SIG_DFL, signal.default_int_handler):
@@ -955,6 +986,10 @@ def main() -> None:
             code = app(standalone_mode=False)
         finally:
             finished = True
+            # The interpreter's exit restores the default handlers: a late redelivery would end
+            # the process by the signal instead of the exit code chosen below.
+            for redelivery in redeliveries:
+                redelivery.cancel()
     except typer.TyperException as error:  # click's usage errors (exit code 2), as typer has them
         context = getattr(error, "ctx", None)
         where = context.command_path if context else "oodrl"

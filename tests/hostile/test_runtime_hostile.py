@@ -358,6 +358,73 @@ def test_a_signal_while_torch_initialises_waits_for_it(workdir):
     assert {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} == set(before)
 
 
+# collect-eval with an interrupt that code it calls catches and drops, as C code that calls back
+# into Python can (an extension module's initialisation that imports a module); the command's
+# work then goes on for seconds before its store.
+SIGNAL_DROPPED = """
+import signal, sys, threading, time
+import oodrl.io.store
+
+original = oodrl.io.store.write_store
+
+def write_store(*args, **kwargs):
+    try:
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+        time.sleep(0.3)  # the handler raises in here
+    except KeyboardInterrupt:
+        print("the interrupt was dropped", file=sys.stderr)
+    time.sleep(5)
+    return original(*args, **kwargs)
+
+oodrl.io.store.write_store = write_store
+sys.argv = ["oodrl", "collect-eval", "--policy", "models/policy.pt", "--out", "new.zarr"]
+from oodrl.cli import main
+main()
+"""
+
+
+def test_an_interrupt_a_library_drops_is_raised_again(workdir):
+    """A command still running a moment after its interrupt was raised gets it again: it stops
+    in one line, before its store, instead of running to its end and exiting by the signal."""
+    before = snapshot(workdir)
+    done = _driven(workdir, SIGNAL_DROPPED)
+    assert "the interrupt was dropped" in done.stderr, done.stderr
+    assert_one_line_error(done, 128 + signal.SIGTERM, "interrupted (SIGTERM)")
+    assert {k for k in snapshot(workdir) if not k.endswith("run_meta.yaml")} == set(before)
+
+
+# collect-eval with a signal that lands while the store's temporary folder is removed, after the
+# store was renamed into place: sent from the folder's first os.rmdir once new.zarr exists.
+SIGNAL_IN_REMOVAL = """
+import os, signal, sys, threading, time
+
+original = os.rmdir
+
+def rmdir(*args, **kwargs):
+    if os.path.exists("new.zarr") and not getattr(rmdir, "fired", False):
+        rmdir.fired = True
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+        time.sleep(0.05)  # the handler runs in here, inside shutil.rmtree
+    return original(*args, **kwargs)
+
+os.rmdir = rmdir
+sys.argv = ["oodrl", "collect-eval", "--policy", "models/policy.pt", "--out", "new.zarr"]
+from oodrl.cli import main
+main()
+"""
+
+
+def test_a_signal_while_a_temporary_folder_is_removed_waits_for_it(workdir):
+    """Raised inside shutil.rmtree, an interrupt would leave the temporary folder half removed;
+    it is delivered once the removal is done: one line, the store whole, no temporary left."""
+    before = snapshot(workdir)
+    done = _driven(workdir, SIGNAL_IN_REMOVAL)
+    assert_one_line_error(done, 128 + signal.SIGTERM, "interrupted (SIGTERM)")
+    assert _new_files(workdir, before) == {"new.zarr"}
+    assert not list(workdir.glob(".new.zarr*")), "a temporary folder stayed"
+    read_trajectories(workdir / "new.zarr", stage=None)
+
+
 def test_show_warns_when_the_results_inputs_changed(tmp_path):
     """`oodrl show` on a DVC output whose inputs changed since it was computed says so (a real
     git + DVC repository laid out as an oodrl project: a params edit reaches the results stage
