@@ -20,7 +20,11 @@ and prints markdown:
    over the group's cells (each (policy, fault) cell once) of the detector's score minus the
    versus detector's, with a 95% percentile bootstrap over the group's cells (paired: both
    scores of a cell move together); "beats" when the interval lies above 0. A group of fewer
-   than 5 cells is counted, not judged.
+   than 5 cells is counted, not judged;
+5. what the time-aware per-stream rule (SPEC §24) changes, per detector and environment: the
+   mean over each environment's verified (policy, fault) cells of --tiers of the detection rate
+   under the time-aware rule minus under the constant one, read from the runs' tier records
+   (`oodrl.load_results(kind="tiers")`); the leaderboard gives each detector's paired CI.
 
 Every number says how many runs or cells stand behind it.
 """
@@ -168,6 +172,36 @@ def versus(board: dict, metric: str, tier: str, rival: str, detectors: list[str]
     return [*lines, ""]
 
 
+def by_rule(pipelines: Path, metric: str, tiers: list[str]) -> list[str]:
+    import oodrl
+    from oodrl.metrics.leaderboard import time_aware_metric
+
+    key = ["env", "policy", "fault", "detector"]
+    changes: dict[str, dict[tuple[str, str], list[float]]] = defaultdict(lambda: defaultdict(list))
+    for path in sorted(pipelines.glob("*/reports/tier_results.yaml")):
+        frame = oodrl.load_results(path, kind="tiers")
+        frame = frame[frame.verified.astype(bool) & frame.tier.isin(tiers)]
+        for tier, rows in frame.groupby("tier"):
+            constant = rows[rows.metric == metric].set_index(key)["value"]
+            time_aware = rows[rows.metric == time_aware_metric(metric)].set_index(key)["value"]
+            for (env, _, _, detector), change in (time_aware - constant).dropna().items():
+                changes[tier][(detector, env)].append(change)
+    lines = []
+    for tier in tiers:
+        cells = changes.get(tier, {})
+        envs = sorted({env for _, env in cells})
+        lines += [f"### What the time-aware rule changes at `{tier}` (mean over each "
+                  f"environment's verified cells of {metric} under it minus under the constant "
+                  "rule)", "", "| detector | " + " | ".join(envs) + " |",
+                  "|---|" + "---:|" * len(envs)]  # fmt: skip
+        for detector in sorted({d for d, _ in cells}):
+            row = [f"{np.mean(cells[(detector, e)]):+.3f} ({len(cells[(detector, e)])})"
+                   if (detector, e) in cells else "—" for e in envs]  # fmt: skip
+            lines.append(f"| {detector} | " + " | ".join(row) + " |")
+        lines += ["", "(n): the environment's cells with both rules.", ""]
+    return lines
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--suite", type=Path, default=Path("pipeline/suite/reports"))
@@ -195,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
     out += landing(board, args.metric, args.tiers, args.detectors)
     out += false_alarms(args.pipelines)
     out += versus(board, args.metric, args.at, args.versus, args.detectors, args.n_boot)
+    out += by_rule(args.pipelines, args.metric, [BENIGN, args.at])
     print("\n".join(out))
     return 0
 

@@ -457,6 +457,32 @@ def test_every_generated_table_is_what_its_source_generates():
     assert generated_block(GETTING_STARTED.read_text(), START) == table
 
 
+def test_the_headline_says_what_the_time_aware_rule_changes_where_the_results_hold_both():
+    """Protocol 4's leaderboard holds both threshold rules: a last column gives each shown
+    detector's paired difference with its CI, and the caption the rankings' Kendall τ. The
+    archived protocol-3 leaderboard holds one rule: no such column."""
+    import json
+
+    from oodrl.report.readme import leaderboard_headline
+
+    board = leaderboard()
+    lead = board["lead"]
+    change = board["rule_change"][lead["metric"]][lead["tier"]]
+    header, _, *rows = leaderboard_headline(board).split("\n\n")[0].splitlines()
+    assert header.endswith("time-aware rule − constant |"), header
+    for row in rows:
+        detector = row.split("`")[1]
+        difference = change["detectors"][detector]["difference"]
+        assert row.split(" | ")[-1].startswith(f"{difference['value']:+.3f} ["), row
+    assert f"Kendall τ of the two rules' IQM rankings {change['kendall_tau'][0]['tau']:.2f}" in (
+        leaderboard_headline(board)
+    )
+
+    archived = json.loads((ROOT / "pipeline/suite/archive/protocol-3/leaderboard.json").read_text())
+    header = leaderboard_headline(archived).splitlines()[0]
+    assert "time-aware" not in header and header.count(" | ") == 4, header
+
+
 def test_readme_table_rewrites_a_stale_block_and_refuses_a_file_without_its_markers(tmp_path):
     from typer.testing import CliRunner
 

@@ -6,8 +6,9 @@ current. There are two kinds, told apart by the source:
 
 - `<!-- headline:start leaderboard -->`: the suite's leaderboard headline, rendered from
   `pipeline/suite/reports/leaderboard.json` (README.md's first screen): the lead tier's top
-  detectors by IQM with 95% CIs, beside their matched AUROC and their alarm rate on harmless
-  (`benign`) shifts.
+  detectors by IQM with 95% CIs, beside their matched AUROC, their alarm rate on harmless
+  (`benign`) shifts and, where the results hold both threshold rules (protocol 4), what the
+  time-aware rule changes of the lead metric (SPEC §24).
 - `<!-- headline:start -->`: a pipeline's per-detector table, `reports/headline.md`, copied as
   the render stage wrote it (docs/getting-started.md, "Reading the results").
 """
@@ -36,6 +37,10 @@ def _interval(entry: dict[str, float]) -> str:
     return f"{entry['value']:.3f} [{entry['ci_low']:.3f}, {entry['ci_high']:.3f}]"
 
 
+def _signed_interval(entry: dict[str, float]) -> str:
+    return f"{entry['value']:+.3f} [{entry['ci_low']:+.3f}, {entry['ci_high']:+.3f}]"
+
+
 def _name(board: dict[str, Any], detector: str) -> str:
     name = f"`{detector}`"
     if detector in board.get("uncertified_detectors", []):
@@ -60,6 +65,8 @@ def leaderboard_headline(board: dict[str, Any], top: int = TOP) -> str:
     shown = [d for d in ranked if d != floor and d not in trivial][:top]
     auroc = board["iqm"].get(THRESHOLD_FREE, {}).get(tier, {})
     harmless = board["iqm"][metric].get(HARMLESS_TIER, {})
+    # Absent before protocol 4, whose results hold one threshold rule.
+    rule_change = board.get("rule_change", {}).get(metric, {}).get(tier)
     alpha = board["alpha"]
     header = [
         "rank",
@@ -68,7 +75,12 @@ def leaderboard_headline(board: dict[str, Any], top: int = TOP) -> str:
         f"{tier}: matched AUROC",
         f"{HARMLESS_TIER}: alarm rate (lower is better)",
     ]
-    lines = ["| " + " | ".join(header) + " |", "|---:|---|---:|---:|---:|"]
+    if rule_change:
+        header.append(f"{tier}, detected: time-aware rule − constant")
+    lines = [
+        "| " + " | ".join(header) + " |",
+        "|" + "|".join(["---:", "---"] + ["---:"] * (len(header) - 2)) + "|",
+    ]
     for detector in shown:
         cells = [
             str(ranked.index(detector) + 1),
@@ -77,6 +89,13 @@ def leaderboard_headline(board: dict[str, Any], top: int = TOP) -> str:
             _interval(auroc[detector]) if detector in auroc else "—",
             _interval(harmless[detector]) if detector in harmless else "—",
         ]
+        if rule_change:
+            change = rule_change["detectors"].get(detector)
+            cells.append(
+                _signed_interval(change["difference"]) + (" *" if change["changed"] else "")
+                if change
+                else "—"
+            )
         lines.append("| " + " | ".join(cells) + " |")
     mild = [c for c in board["cells"] if c["tier"] == tier]
     n_cells = len({(c["environment"], c["fault"]) for c in mild})
@@ -90,6 +109,8 @@ def leaderboard_headline(board: dict[str, Any], top: int = TOP) -> str:
     if floor in scores:
         caption += f"; the floor, `{floor}`: {_interval(scores[floor])}"
     caption += "."
+    if rule_change:
+        caption += " " + _rule_change_caption(rule_change, tier)
     if board.get("pending"):  # a change of protocol under way (SPEC §26): say what is left out
         runs = ", ".join(
             f"{r['environment']}/{r['policy']} (protocol {r['protocol_version']})"
@@ -99,6 +120,19 @@ def leaderboard_headline(board: dict[str, Any], top: int = TOP) -> str:
     if any(d in board.get("uncertified_detectors", []) for d in shown):
         caption += " † runs a library's own kernels (not certified machine-independent)."
     return "\n".join([*lines, "", caption])
+
+
+def _rule_change_caption(rule_change: dict[str, Any], tier: str) -> str:
+    """What the last column is over (`rule_change_mapping`'s record of the lead tier)."""
+    everywhere = rule_change["kendall_tau"][0]  # the detectors that run on every environment
+    return (
+        "Last column: the detection rate under the time-aware per-stream threshold rule minus "
+        "under the constant one, on the same streams (mean over the "
+        f"{rule_change['n_cells']} of {rule_change['n_tier_cells']} `{tier}` cells whose results "
+        "hold both; paired-bootstrap 95% CI, * where it excludes 0); Kendall τ of the two rules' "
+        f"IQM rankings {everywhere['tau']:.2f} over the {len(everywhere['detectors'])} detectors "
+        f"run on all {len(everywhere['environments'])} environments."
+    )
 
 
 def _source_block(headline: Path) -> tuple[str, str]:
