@@ -65,3 +65,5 @@ def test_summary_of_a_known_leaderboard(tmp_path: Path):
     assert "CartPole-v1/observation" in q_margin and "Hopper-v5" not in q_margin
     random = next(line for line in beats.splitlines() if line.startswith("- **random_scores**"))
     assert random.endswith("nowhere")
+    # Protocol-3 results hold one threshold rule: nothing to compare, said so.
+    assert "### What the time-aware rule changes at `mild`: no verified cell holds both" in out
