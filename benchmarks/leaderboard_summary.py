@@ -23,8 +23,8 @@ and prints markdown:
    than 5 cells is counted, not judged;
 5. what the time-aware per-stream rule (SPEC §24) changes, per detector and environment: the
    mean over each environment's verified (policy, fault) cells of --tiers of the detection rate
-   under the time-aware rule minus under the constant one, read from the runs' tier records
-   (`oodrl.load_results(kind="tiers")`); the leaderboard gives each detector's paired CI.
+   under the time-aware rule minus under the constant one, from the runs' tier records (the
+   rows of `oodrl.load_results(kind="tiers")`); the leaderboard gives each detector's paired CI.
 
 Every number says how many runs or cells stand behind it.
 """
@@ -182,7 +182,10 @@ def versus(board: dict, metric: str, tier: str, rival: str, detectors: list[str]
 
 
 def by_rule(pipelines: Path, metric: str, tiers: list[str]) -> list[str]:
-    import oodrl
+    import pandas as pd
+
+    from oodrl.api.project import pipeline_at
+    from oodrl.api.results import tier_rows
     from oodrl.metrics.leaderboard import time_aware_metric
 
     key = ["env", "policy", "fault", "detector"]
@@ -190,7 +193,9 @@ def by_rule(pipelines: Path, metric: str, tiers: list[str]) -> list[str]:
     for path, document in tier_documents(pipelines).items():
         if not document.get("records"):
             continue
-        frame = oodrl.load_results(path, kind="tiers")
+        # load_results' rows, from the document false_alarms already parsed
+        run = pipeline_at(path.parents[1])
+        frame = pd.DataFrame(tier_rows(document["records"], run.env, run.policy))
         frame = frame[frame.verified.astype(bool) & frame.tier.isin(tiers)]
         for tier, rows in frame.groupby("tier"):
             constant = rows[rows.metric == metric].set_index(key)["value"]
