@@ -35,7 +35,7 @@ COST_S: dict[str, float] = {
     "tests/hostile/test_runtime_hostile.py": 99,
     "tests/pipeline/test_deps.py": 98,
     "tests/test_migration.py": 98,
-    "tests/pipeline/test_environments.py": 97,
+    "tests/pipeline/test_environments.py": 15,
     "tests/pipeline/test_failures.py": 86,
     "tests/test_new.py": 86,
     "tests/test_readonly_remote.py": 76,
@@ -77,6 +77,7 @@ GROUPS: dict[str, str] = {
             "tests/test_remote.py",
             "tests/test_migration.py",
             "tests/test_migration_resume.py",
+            "tests/pipeline/test_environments.py",
         )
     },
 }

@@ -16,9 +16,12 @@ from oodrl.testing.pipeline import TINY_TIERS
 from oodrl.testing.suite import SUITE, code_env, head_commit, locks, serial_build, suite_copy
 
 PIPELINES = [".", "pipeline/cartpole"]
+#: The tiny suite's benchmark: what every one of its pipelines scores.
+SUITE_DETECTORS = ["mahalanobis_distance"]
+SUITE_INJECTORS = ["stuck_actuator"]
 __all__ = [
-    "SUITE", "checkout", "code_env", "copy_built", "head_commit", "locks", "run_folder",
-    "serial_built_suite", "serial_suite",
+    "SUITE", "SUITE_DETECTORS", "SUITE_INJECTORS", "checkout", "code_env", "copy_built",
+    "head_commit", "locks", "run_folder", "serial_built_suite", "serial_suite",
 ]  # fmt: skip
 
 
@@ -26,7 +29,7 @@ def _tiny(params: dict) -> None:
     params["env"]["T"] = 60
     params["data"].update(n_id=5, n_ood=3)  # 300 ID scores: the time-aware rule's least
     params["anomaly"]["sweep"] = [0.5]
-    params["benchmark"] = {"detectors": ["mahalanobis_distance"], "injectors": ["stuck_actuator"]}
+    params["benchmark"] = {"detectors": list(SUITE_DETECTORS), "injectors": list(SUITE_INJECTORS)}
     params["metrics"].update(n_boot=20, traces_per_anomaly=1)
     params["executor"]["workers"] = 1
     if "tiers" in params:  # impact tiers (SPEC §15, §19): tiny counts
