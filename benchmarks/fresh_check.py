@@ -23,6 +23,11 @@ It rolls FRESH seeds and prints two markdown tables (`--json OUT` writes them to
     raise at or after T is beyond the stream, so no alarm (`oodrl.metrics.operating.first_raise`,
     as `oodrl.metrics.tiers` counts detections). Each stream with an alarm counts once.
     Verdict: "not significantly above α" iff the interval's lower end is ≤ α, else "above α".
+    Both per-stream rules (SPEC §24), each at its own committed threshold: the constant rule
+    thresholds the scores as they are, the time-aware rule their per-step standardisation by
+    the detector's scores of the pipeline's ID set (`scores/<detector>/id.zarr`, what the
+    tier_metrics stage fits it on); a detector whose records hold no time-aware operating point
+    (fewer than 300 ID scores) has a constant-rule row only.
 (b) Tiers: per fault and every tier its impact document reaches (a tier whose severity is
     "unreachable" is listed, not measured), the normalised return
     R̃ = (R(σ) − R_rand) / (R_clean − R_rand) at the committed severity σ, measured on M fresh
@@ -82,6 +87,7 @@ BLOCK = 100_000
 TOLERANCE = 0.02
 TIER_RESULTS = "reports/tier_results.yaml"
 ID_STORE = "data/id.zarr"
+SCORES_DIR = "scores"
 POLICY = "models/policy.pt"
 #: Where the check was started (it runs in the pipeline's directory, as the stages do).
 _LAUNCH_DIR = Path.cwd()
@@ -205,32 +211,58 @@ def fitted_detector_path(name: str) -> Path:
     return Path("models/detectors") / f"{name}.pkl"
 
 
-def committed_thresholds(detectors: list[str]) -> tuple[dict[str, float], float, dict]:
-    """Each detector's per-stream threshold and α from reports/tier_results.yaml."""
+#: Where each per-stream rule's operating point sits in a tier record (SPEC §24).
+RULE_POINTS = {"constant": ("operating_point",), "time_aware": ("time_aware", "operating_point")}
+
+
+def _rule_point(record: dict, rule: str) -> dict:
+    point = record
+    for key in RULE_POINTS[rule]:
+        point = (point or {}).get(key)
+    return point or {}
+
+
+def committed_thresholds(
+    detectors: list[str],
+) -> tuple[dict[str, dict[str, float | None]], float, dict]:
+    """Each detector's per-stream threshold under each rule (None: the time-aware rule has no
+    operating point for it) and α, from reports/tier_results.yaml."""
     from oodrl.errors import StoreError
     from oodrl.io import yamlio
 
     if not Path(TIER_RESULTS).is_file():
         raise _missing(TIER_RESULTS, "tier_metrics", "the tier results file")
     document = yamlio.load(Path(TIER_RESULTS).read_text())
-    found: dict[str, set[float]] = {}
+    found: dict[tuple[str, str], set[float]] = {}
     alphas = set()
     for record in document.get("records") or []:
-        point = record.get("operating_point") or {}
-        if "threshold" in point and record.get("detector") in detectors:
-            found.setdefault(record["detector"], set()).add(float(point["threshold"]))
-            alphas.add(float(point.get("alpha", document.get("alpha"))))
-    thresholds = {}
+        if record.get("detector") not in detectors:
+            continue
+        for rule in RULE_POINTS:
+            point = _rule_point(record, rule)
+            if "threshold" in point:
+                found.setdefault((record["detector"], rule), set()).add(float(point["threshold"]))
+                alphas.add(float(point.get("alpha", document.get("alpha"))))
+    thresholds: dict[str, dict[str, float | None]] = {}
     for name in detectors:
-        values = found.get(name, set())
-        if len(values) != 1:
-            what = "no threshold" if not values else f"{len(values)} different thresholds"
-            raise StoreError(
-                f"{TIER_RESULTS}: {what} of detector {name!r} in its operating points."
-            )
-        thresholds[name] = values.pop()
+        for rule in RULE_POINTS:
+            values = found.get((name, rule), set())
+            if len(values) > 1 or (not values and rule == "constant"):
+                what = "no threshold" if not values else f"{len(values)} different thresholds"
+                raise StoreError(
+                    f"{TIER_RESULTS}: {what} of detector {name!r} in its {rule} rule's "
+                    f"operating points."
+                )
+            thresholds.setdefault(name, {})[rule] = values.pop() if values else None
     alpha = float(document.get("alpha", alphas.pop() if len(alphas) == 1 else math.nan))
     return thresholds, alpha, document
+
+
+def id_scores_path(name: str) -> Path:
+    """The detector's scores of the ID set, which the time-aware rule standardises by."""
+    from oodrl.io.layout import id_score_store
+
+    return id_score_store(Path(SCORES_DIR), name)
 
 
 def committed_tiers(faults: list[str]) -> tuple[dict[str, dict], int | None]:
@@ -280,12 +312,15 @@ def tier_verdict(low: float, high: float, value: float, level: float, band, n: i
 
 # -- (a) false alarms ------------------------------------------------------------------------------
 def false_alarms(params, detectors, thresholds, alpha, seeds: range, workers: int) -> list[dict]:
-    """Per detector, the fresh clean streams' false-alarm rate at its committed threshold."""
+    """Per detector and per-stream rule, the fresh clean streams' false-alarm rate at its
+    committed threshold."""
     from oodrl.envs import ENVIRONMENTS
     from oodrl.envs.collect import collect
     from oodrl.io.layout import detector_stage
     from oodrl.io.store import load_detector
     from oodrl.metrics.operating import achieved_false_alarm_rate
+    from oodrl.metrics.tiers import _time_aware_fit  # the tier_metrics stage's own fit
+    from oodrl.metrics.time_aware import rule_scores
     from oodrl.policies.load import load_policy
     from oodrl.protocol.scoring import score_set
 
@@ -303,18 +338,25 @@ def false_alarms(params, detectors, thresholds, alpha, seeds: range, workers: in
         detector = load_detector(fitted_detector_path(name), stage=detector_stage(name, "fit"))
         scores = score_set(detector, name, clean, "the fresh clean streams")
         latency = params.detector(name).latency
-        alarms = scores >= thresholds[name]
-        if latency:  # an alarm on step t is raised at t + latency: at or after T is no alarm
-            alarms[:, max(T - latency, 0) :] = False
-        far = achieved_false_alarm_rate(alarms, params.metrics.ci)
-        rows.append({
-            "detector": name, "threshold": thresholds[name], "latency": latency,
-            "n_streams": far.n_streams, "n_alarmed": far.n_alarmed, "rate": far.rate,
-            "ci": [far.ci_low, far.ci_high], "alpha": alpha,
-            "verdict": "not significantly above α" if far.ci_low <= alpha else "above α",
-        })  # fmt: skip
-        say(f"  {name}: {far.n_alarmed}/{far.n_streams} alarmed "
-            f"({time.perf_counter() - started:.0f} s)")  # fmt: skip
+        standardiser = None
+        if thresholds[name]["time_aware"] is not None:
+            standardiser, _ = _time_aware_fit(Path(SCORES_DIR), name)
+        for rule, threshold in thresholds[name].items():
+            if threshold is None:
+                continue
+            alarms = rule_scores(scores, standardiser if rule == "time_aware" else None)
+            alarms = alarms >= threshold
+            if latency:  # an alarm on step t is raised at t + latency: at or after T is none
+                alarms[:, max(T - latency, 0) :] = False
+            far = achieved_false_alarm_rate(alarms, params.metrics.ci)
+            rows.append({
+                "detector": name, "rule": rule, "threshold": threshold, "latency": latency,
+                "n_streams": far.n_streams, "n_alarmed": far.n_alarmed, "rate": far.rate,
+                "ci": [far.ci_low, far.ci_high], "alpha": alpha,
+                "verdict": "not significantly above α" if far.ci_low <= alpha else "above α",
+            })  # fmt: skip
+            say(f"  {name} ({rule} rule): {far.n_alarmed}/{far.n_streams} alarmed "
+                f"({time.perf_counter() - started:.0f} s)")  # fmt: skip
     return rows
 
 
@@ -411,12 +453,14 @@ def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, 
 # -- output ----------------------------------------------------------------------------------------
 def far_table(rows: list[dict], T: int) -> str:  # noqa: N803
     lines = [
-        "| detector | threshold | latency | streams | alarmed | FAR [95% CI] | α | verdict |",
-        "|---|---:|---:|---:|---:|---:|---:|---|",
+        "| detector | rule | threshold | latency | streams | alarmed | FAR [95% CI] | α "
+        "| verdict |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['detector']} | {r['threshold']:.4g} | {r['latency']} | {r['n_streams']} | "
+            f"| {r['detector']} | {r['rule']} | {r['threshold']:.4g} | {r['latency']} | "
+            f"{r['n_streams']} | "
             f"{r['n_alarmed']} | {r['rate']:.3f} [{r['ci'][0]:.3f}, {r['ci'][1]:.3f}] | "
             f"{r['alpha']:g} | {r['verdict']} |"
         )
@@ -460,12 +504,12 @@ def report(result: dict[str, Any]) -> str:
         ok = sum(r["verdict"] == "not significantly above α" for r in rows)
         out += [
             f"## False alarms: {n} fresh clean streams of {result['T']} steps per detector, "
-            f"at each detector's committed per-stream threshold ({TIER_RESULTS})",
+            f"at each detector's committed per-stream thresholds, both rules ({TIER_RESULTS})",
             "",
             far_table(rows, result["T"]),
             "",
-            f"{ok} of {len(rows)} detectors not significantly above α (Clopper-Pearson 95%; "
-            f"each rate from {n} streams).",
+            f"{ok} of {len(rows)} (detector, rule) pairs not significantly above α "
+            f"(Clopper-Pearson 95%; each rate from {n} streams).",
             "",
         ]
     if result.get("tiers") is not None:
@@ -526,13 +570,16 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         raise _missing(POLICY, "train_policy", "the policy")
     thresholds, alpha, tiers, horizon = {}, params.tiers.alpha, {}, None
     if args.streams:
+        from oodrl.io.layout import detector_stage
+
         thresholds, alpha, _ = committed_thresholds(detectors)
         for name in detectors:
             path = fitted_detector_path(name)
             if not path.is_file():
-                from oodrl.io.layout import detector_stage
-
                 raise _missing(path, detector_stage(name, "fit"), "the fitted detector")
+            if thresholds[name]["time_aware"] is not None and not id_scores_path(name).exists():
+                raise _missing(id_scores_path(name), detector_stage(name, "score_clean"),
+                               "the detector's scores of the ID set")  # fmt: skip
     if args.episodes:
         tiers, horizon = committed_tiers(faults)
         if not Path(ID_STORE).exists():

@@ -60,7 +60,10 @@ def test_tables_count_what_was_asked(pipeline, tmp_path):
     stdout = done.stdout
     assert f"## False alarms: {STREAMS} fresh clean streams of 60 steps" in stdout
     far = table(stdout, "False alarms")
-    assert [row["detector"] for row in far] == DETECTORS
+    # Both per-stream rules: the tiny pipeline's 300 ID scores are the time-aware rule's least.
+    assert [(row["detector"], row["rule"]) for row in far] == [
+        (d, rule) for d in DETECTORS for rule in ("constant", "time_aware")
+    ]
     for row in far:
         assert row["streams"] == str(STREAMS)
         assert 0 <= int(row["alarmed"]) <= STREAMS
@@ -87,15 +90,20 @@ def test_tables_count_what_was_asked(pipeline, tmp_path):
         assert row["verdict"].startswith(("within ", "misses by ", "undecided at "))
 
     result = json.loads(out.read_text())
-    assert [r["n_streams"] for r in result["false_alarms"]] == [STREAMS] * len(DETECTORS)
+    assert [r["n_streams"] for r in result["false_alarms"]] == [STREAMS] * 2 * len(DETECTORS)
     assert result["tiers"]["returns"]["n_clean"] == EPISODES
     assert result["tiers"]["returns"]["n_random"] == EPISODES
     measured = [r for r in result["tiers"]["rows"] if r["severity"] != "unreachable"]
     assert measured and all(r["n_episodes"] == EPISODES for r in measured)
     # The thresholds are the committed ones of tier_results.yaml.
     records = yaml.safe_load((pipeline / "reports/tier_results.yaml").read_text())["records"]
-    committed_thresholds = {r["detector"]: r["operating_point"]["threshold"] for r in records}
-    assert {r["detector"]: r["threshold"] for r in result["false_alarms"]} == committed_thresholds
+    committed_thresholds = {
+        **{(r["detector"], "constant"): r["operating_point"]["threshold"] for r in records},
+        **{(r["detector"], "time_aware"): r["time_aware"]["operating_point"]["threshold"]
+           for r in records},
+    }  # fmt: skip
+    shown = {(r["detector"], r["rule"]): r["threshold"] for r in result["false_alarms"]}
+    assert shown == committed_thresholds
 
 
 @pytest.fixture(scope="module")
