@@ -19,33 +19,32 @@ from __future__ import annotations
 import pytest
 
 #: Seconds a module's tests took (setup, call and teardown summed, from the junit file of the
-#: README's test command in a fresh clone of 7605109 on an idle 2-core machine: 2,777 s of worker
-#: time in 1,421 s), for the modules over 40 s. A group's first module pays its shared build (the
+#: README's test command in a fresh clone of e0e9bca on an idle 2-core machine: 2,640 s of worker
+#: time in 1,351 s), for the modules over 40 s. A group's first module pays its shared build (the
 #: serial suite's). Only the order reads them: a stale or missing entry costs time, never a result.
 COST_S: dict[str, float] = {
-    "tests/test_readme.py": 164,
-    "tests/pipeline/test_pipeline.py": 138,
-    "tests/test_protocol_every_environment.py": 137,
-    "tests/test_suite_run_ray.py": 125,
-    "tests/test_migration_resume.py": 117,
-    "tests/test_suite_run.py": 117,
-    "tests/test_remote.py": 113,
-    "tests/api/test_evaluate.py": 105,
-    "tests/test_suite.py": 100,
-    "tests/hostile/test_runtime_hostile.py": 99,
-    "tests/pipeline/test_deps.py": 98,
-    "tests/test_migration.py": 98,
-    "tests/pipeline/test_environments.py": 15,
-    "tests/pipeline/test_failures.py": 86,
-    "tests/test_new.py": 86,
-    "tests/test_readonly_remote.py": 76,
-    "tests/test_suite_try.py": 72,
-    "tests/pipeline/test_warm.py": 69,
-    "tests/test_recorded.py": 67,
-    "tests/metrics/test_leaderboard_rliable.py": 56,
-    "tests/detectors/test_library.py": 46,
-    "tests/report/test_leaderboard_page.py": 44,
-    "tests/faults/test_remote_faults.py": 43,
+    "tests/test_suite_run_ray.py": 161,
+    "tests/test_readme.py": 148,
+    "tests/test_suite_run.py": 142,
+    "tests/test_migration_resume.py": 127,
+    "tests/test_protocol_every_environment.py": 124,
+    "tests/hostile/test_runtime_hostile.py": 121,
+    "tests/test_remote.py": 118,
+    "tests/api/test_evaluate.py": 106,
+    "tests/test_suite.py": 94,
+    "tests/pipeline/test_environments.py": 94,
+    "tests/pipeline/test_warm.py": 90,
+    "tests/pipeline/test_pipeline.py": 87,
+    "tests/test_suite_try.py": 74,
+    "tests/test_readonly_remote.py": 74,
+    "tests/metrics/test_leaderboard_rliable.py": 69,
+    "tests/pipeline/test_failures.py": 63,
+    "tests/pipeline/test_deps.py": 61,
+    "tests/test_new.py": 54,
+    "tests/test_recorded.py": 47,
+    "tests/report/test_leaderboard_page.py": 47,
+    "tests/faults/test_remote_faults.py": 42,
+    "tests/detectors/test_library.py": 41,
 }
 #: What a module without an entry in COST_S counts when it holds a test marked `slow`.
 SLOW_S = 50.0
