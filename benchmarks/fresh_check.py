@@ -344,8 +344,8 @@ def false_alarms(params, detectors, thresholds, alpha, seeds: range, workers: in
         for rule, threshold in thresholds[name].items():
             if threshold is None:
                 continue
-            alarms = rule_scores(scores, standardiser if rule == "time_aware" else None)
-            alarms = alarms >= threshold
+            by_rule = standardiser if rule == "time_aware" else None
+            alarms = rule_scores(scores, by_rule) >= threshold
             if latency:  # an alarm on step t is raised at t + latency: at or after T is none
                 alarms[:, max(T - latency, 0) :] = False
             far = achieved_false_alarm_rate(alarms, params.metrics.ci)
