@@ -211,24 +211,15 @@ def fitted_detector_path(name: str) -> Path:
     return Path("models/detectors") / f"{name}.pkl"
 
 
-#: Where each per-stream rule's operating point sits in a tier record (SPEC §24).
-RULE_POINTS = {"constant": ("operating_point",), "time_aware": ("time_aware", "operating_point")}
-
-
-def _rule_point(record: dict, rule: str) -> dict:
-    point = record
-    for key in RULE_POINTS[rule]:
-        point = (point or {}).get(key)
-    return point or {}
-
-
 def committed_thresholds(
     detectors: list[str],
 ) -> tuple[dict[str, dict[str, float | None]], float, dict]:
     """Each detector's per-stream threshold under each rule (None: the time-aware rule has no
     operating point for it) and α, from reports/tier_results.yaml."""
+    from oodrl.api.results import rule_points
     from oodrl.errors import StoreError
     from oodrl.io import yamlio
+    from oodrl.metrics.time_aware import RULES
 
     if not Path(TIER_RESULTS).is_file():
         raise _missing(TIER_RESULTS, "tier_metrics", "the tier results file")
@@ -238,14 +229,14 @@ def committed_thresholds(
     for record in document.get("records") or []:
         if record.get("detector") not in detectors:
             continue
-        for rule in RULE_POINTS:
-            point = _rule_point(record, rule)
+        for prefix, point in rule_points(record, alpha_curves=False):  # load_results' reading
+            rule = "time_aware" if prefix else "constant"
             if "threshold" in point:
                 found.setdefault((record["detector"], rule), set()).add(float(point["threshold"]))
                 alphas.add(float(point.get("alpha", document.get("alpha"))))
     thresholds: dict[str, dict[str, float | None]] = {}
     for name in detectors:
-        for rule in RULE_POINTS:
+        for rule in RULES:
             values = found.get((name, rule), set())
             if len(values) > 1 or (not values and rule == "constant"):
                 what = "no threshold" if not values else f"{len(values)} different thresholds"

@@ -26,7 +26,7 @@ from suite_repo import (
 
 from oodrl.io.layout import detector_stage
 from oodrl.io.store import read_trajectories
-from oodrl.testing.pipeline import repro, run
+from oodrl.testing.pipeline import lock_hashes, repro, run
 
 pytestmark = pytest.mark.slow
 
@@ -54,9 +54,7 @@ def test_environment_pipeline_builds_in_its_directory(cartpole_repo):
     assert (attrs["env_id"], attrs["T"]) == ("CartPole-v1", 60)
     assert _ran(cartpole_repo) == set()
     # Its outputs went to the root's cache: it has none of its own.
-    lock = yaml.safe_load((env / "dvc.lock").read_text())
-    (id_store,) = [o for o in lock["stages"]["collect_id"]["outs"] if o["path"] == "data/id.zarr"]
-    digest = id_store["md5"]
+    digest = lock_hashes(env)["data/id.zarr"]
     assert (cartpole_repo / ".dvc" / "cache" / "files" / "md5" / digest[:2] / digest[2:]).is_file()
     assert not (env / ".dvc" / "cache").exists()
     # The root's DVC collects its own stages, never the subrepo's.
