@@ -18,7 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from oodrl.testing.pipeline import edit_params, repro, run
+from oodrl.testing.pipeline import edit_params, prune_locks, repro, run
 
 SUITE = "pipeline/suite"
 SUITE_PARAMS = "pipeline/params.yaml"
@@ -69,6 +69,7 @@ def suite_copy(
     _cut_suite_list(dest / "src" / "oodrl" / "suite" / "environments.py", pipelines)
     run(dest, "oodrl", "pipeline", "write", env=code_env(dest))
     run(dest, "git", "init", "-q")
+    prune_locks(dest)
     run(dest, "git", "add", "-A")
     run(dest, "git", "commit", "-q", "-m", f"the suite of {', '.join(pipelines)}")
     return dest
