@@ -109,3 +109,17 @@ def test_workers_must_be_positive(fresh_suite):
     result = CliRunner().invoke(app, ["suite", "run", "--root", str(fresh_suite), "--workers", "0"])
     assert result.exit_code == 2
     assert "--workers must be >= 1. Got 0 instead." in result.output
+
+
+def test_a_copy_keeps_in_its_locks_only_the_stages_its_pipelines_define(fresh_suite, repo_root):
+    """oodrl.testing.pipeline.prune_locks: the committed locks also hold the stages the tiny
+    params cut (the other injectors'), entries DVC keeps and rewrites after every stage."""
+    from oodrl.io import yamlio
+
+    for project in [".", "pipeline/cartpole"]:
+        lock = f"{project}/dvc.lock".removeprefix("./")
+        committed = yamlio.load(run(repo_root, "git", "show", f"HEAD:{lock}").stdout)["stages"]
+        kept = yamlio.load((fresh_suite / lock).read_text())["stages"]
+        listed = run(fresh_suite / project, "dvc", "stage", "list", "--name-only").stdout.split()
+        assert sorted(kept) == sorted(name for name in listed if ":" not in name)
+        assert set(kept) < set(committed)
