@@ -13,7 +13,6 @@ the walls are printed beside them.
 from __future__ import annotations
 
 import resource
-import subprocess
 import sys
 import tempfile
 import time
@@ -40,9 +39,9 @@ def with_committed_locks(repo: Path, commit: str) -> None:
 
     for lock in sorted(repo.rglob("dvc.lock")):
         path = lock.relative_to(repo).as_posix()
-        shown = subprocess.run(["git", "show", f"{commit}:{path}"], cwd=ROOT, capture_output=True)
+        shown = run(ROOT, "git", "show", f"{commit}:{path}", check=False)
         if shown.returncode == 0:
-            lock.write_bytes(shown.stdout)
+            lock.write_text(shown.stdout)
     run(repo, "git", "commit", "-q", "-am", "the committed locks")
 
 
