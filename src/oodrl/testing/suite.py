@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from oodrl.suite.pipeline import project_dirs
 from oodrl.testing.pipeline import edit_params, prune_locks, repro, run
 
 SUITE = "pipeline/suite"
@@ -69,7 +70,7 @@ def suite_copy(
     _cut_suite_list(dest / "src" / "oodrl" / "suite" / "environments.py", pipelines)
     run(dest, "oodrl", "pipeline", "write", env=code_env(dest))
     run(dest, "git", "init", "-q")
-    prune_locks(dest)
+    prune_locks(p for p in project_dirs(dest) if (p / ".dvc").is_dir())  # the kept ones
     run(dest, "git", "add", "-A")
     run(dest, "git", "commit", "-q", "-m", f"the suite of {', '.join(pipelines)}")
     return dest
