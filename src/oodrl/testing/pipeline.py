@@ -120,6 +120,10 @@ def lock_hashes(repo: Path) -> dict[str, str]:
     return hashes
 
 
+#: A stage's entry in a dvc.lock as DVC writes it: `  <name>:` under `stages:`.
+_LOCK_ENTRY = re.compile(r"^  ([^\s:#'\"][^\s:]*):$", re.MULTILINE)
+
+
 def prune_locks(projects: Iterable[Path]) -> None:
     """Keep in each dvc.lock of these DVC projects (in a copy) only the stages its DVC file
     defines.
@@ -128,11 +132,11 @@ def prune_locks(projects: Iterable[Path]) -> None:
     DVC keeps them, parsing and rewriting a project's whole dvc.lock after every stage it runs
     (a round trip in pure Python): the tiny suite's build takes a quarter less CPU pruned
     (benchmarks/lock_prune.py). The names come from DVC's own resolver of a DVC file (its
-    `foreach` expanded), not from DVC's index, which parses every lock as well. A lock is read
-    whole and edited only when a line names a stage the file does not define: the edit is DVC's
-    own round trip (a PyYAML one would read `5e-05` as a string, and the params as changed), a
-    second or so on a project's lock, and done for every lock of the 22 projects it made a copy
-    take minutes."""
+    `foreach` expanded), not from DVC's index, which parses every lock as well. A lock's text is
+    searched for stage names first, and only a lock naming a stage its DVC file does not define
+    is edited, by DVC's own round trip (a PyYAML one would read `5e-05` as a string, and the
+    params as changed): a second or so a lock, which done for every lock of the 22 projects made
+    a copy take minutes."""
     from dvc.parsing import DataResolver
     from dvc.repo import Repo
     from dvc.utils.serialize import modify_yaml
@@ -151,13 +155,10 @@ def prune_locks(projects: Iterable[Path]) -> None:
                 wdir = str(dvc_file.parent.resolve())
                 defined = set(DataResolver(dvc, wdir, data).get_keys())
                 lock = dvc_file.with_suffix(".lock")
-                # DVC writes a stage's entry as `  <name>:` under `stages:`; a name written
-                # otherwise is missed here, which costs time in its build and never an entry.
+                # A name DVC wrote otherwise is missed here: that costs time in a build, never
+                # an entry.
                 if set(_LOCK_ENTRY.findall(lock.read_text())) <= defined:
                     continue
                 with modify_yaml(lock) as document:
                     for name in [name for name in document["stages"] if name not in defined]:
                         del document["stages"][name]
-
-
-_LOCK_ENTRY = re.compile(r"^  ([^\s:#'\"][^\s:]*):$", re.MULTILINE)
