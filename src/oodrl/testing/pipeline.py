@@ -8,7 +8,6 @@ committed dvc.lock comes along, so a train_policy stage whose params are unchang
 from __future__ import annotations
 
 import os
-import re
 import shutil
 import subprocess
 import sys
@@ -92,7 +91,7 @@ def copy_project(source: Path, dest: Path, params: dict[str, Any] | None = None)
 
         (dest / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
         write(dest)  # other benchmark lists: other detectors' DVC files
-        prune_locks([dest])  # the params are the root's: only its stages change
+        prune_locks([dest])  # what a copy with its own params builds is the root
     run(dest, "git", "add", "-A")
     run(dest, "git", "commit", "-q", "-m", "copy of the project")
     return dest
@@ -120,10 +119,6 @@ def lock_hashes(repo: Path) -> dict[str, str]:
     return hashes
 
 
-#: A stage's entry in a dvc.lock as DVC writes it: `  <name>:` under `stages:`.
-_LOCK_ENTRY = re.compile(r"^  ([^\s:#'\"][^\s:]*):$", re.MULTILINE)
-
-
 def prune_locks(projects: Iterable[Path]) -> None:
     """Keep in each dvc.lock of these DVC projects (in a copy) only the stages its DVC file
     defines.
@@ -132,11 +127,11 @@ def prune_locks(projects: Iterable[Path]) -> None:
     DVC keeps them, parsing and rewriting a project's whole dvc.lock after every stage it runs
     (a round trip in pure Python): the tiny suite's build takes a quarter less CPU pruned
     (benchmarks/lock_prune.py). The names come from DVC's own resolver of a DVC file (its
-    `foreach` expanded), not from DVC's index, which parses every lock as well. A lock's text is
-    searched for stage names first, and only a lock naming a stage its DVC file does not define
-    is edited, by DVC's own round trip (a PyYAML one would read `5e-05` as a string, and the
-    params as changed): a second or so a lock, which done for every lock of the 22 projects made
-    a copy take minutes."""
+    `foreach` expanded), not from DVC's index, which parses every lock as well. A lock is read
+    with libyaml first, and only one naming a stage its DVC file does not define is edited, by
+    DVC's own round trip (a PyYAML one would read `5e-05` as a string, and the params as
+    changed): a second or so a lock, which done for every lock of the 22 projects made a copy
+    take minutes."""
     from dvc.parsing import DataResolver
     from dvc.repo import Repo
     from dvc.utils.serialize import modify_yaml
@@ -155,9 +150,7 @@ def prune_locks(projects: Iterable[Path]) -> None:
                 wdir = str(dvc_file.parent.resolve())
                 defined = set(DataResolver(dvc, wdir, data).get_keys())
                 lock = dvc_file.with_suffix(".lock")
-                # A name DVC wrote otherwise is missed here: that costs time in a build, never
-                # an entry.
-                if set(_LOCK_ENTRY.findall(lock.read_text())) <= defined:
+                if set(yamlio.load(lock.read_text()).get("stages") or {}) <= defined:
                     continue
                 with modify_yaml(lock) as document:
                     for name in [name for name in document["stages"] if name not in defined]:
