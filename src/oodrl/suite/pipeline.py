@@ -518,6 +518,20 @@ def _yaml():
     return rt
 
 
+@cache
+def _parsed_template(path: Path):
+    return _yaml().load(path.read_text())
+
+
+def _template(path: Path):
+    """A template's round-trip document, the caller's to edit: parsed once a process and
+    copied (`oodrl pipeline write` renders it for each of the suite's pipelines, and a copy
+    takes a fraction of ruamel's parse)."""
+    import copy
+
+    return copy.deepcopy(_parsed_template(path))
+
+
 def _load_pipeline(path: Path):
     if not path.is_file():
         raise ConfigError(f"{path}: no such pipeline file.")
@@ -526,13 +540,12 @@ def _load_pipeline(path: Path):
 
 def _params_chain(params_path: Path) -> list[Path]:
     """The params file and the files it `extends`, nearest first."""
-    import yaml
-
     from oodrl.config import EXTENDS_KEY
+    from oodrl.io import yamlio
 
     chain = [params_path.resolve()]
     while True:
-        data = yaml.safe_load(chain[-1].read_text()) if chain[-1].is_file() else None
+        data = yamlio.load(chain[-1].read_text()) if chain[-1].is_file() else None
         if not isinstance(data, dict) or EXTENDS_KEY not in data:
             return chain
         base = (chain[-1].parent / str(data[EXTENDS_KEY])).resolve()
@@ -548,7 +561,7 @@ def rendered(pipeline_dir: Path, root: Path) -> str:
     project = Project(root.resolve(), pipeline_dir.resolve())
     params_path = pipeline_dir / PARAMS_FILE
     params = read_params_data(params_path)
-    document = _yaml().load(TEMPLATE.read_text())
+    document = _template(TEMPLATE)
     stages = document["stages"]
     if is_recorded(params):
         _as_recorded(stages)
@@ -591,7 +604,7 @@ def _detector_text(
     the pipeline whose fit reads `policy` (None: no policy file) has this text, its name put in.
     Rendering it once per policy rather than per detector is what makes `oodrl pipeline write`
     fast: the round trip through ruamel (comments kept) is most of its time."""
-    document = _yaml().load(DETECTOR_TEMPLATE.read_text())
+    document = _template(DETECTOR_TEMPLATE)
     stages = document["stages"]
     if is_recorded(params):
         _as_recorded(stages)
