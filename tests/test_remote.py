@@ -1,7 +1,8 @@
 """A shared DVC remote (SPEC §16): a fresh clone gets every result by `dvc pull`, and a second
-machine's `dvc repro` restores stages from the run-cache instead of recomputing them. Against a
-directory remote and a real S3-API server on loopback (moto's server, as DVC's S3 plugin is
-tested); a remote whose probe write fails (a bucket that does not exist) stops `oodrl suite run`
+machine's `dvc repro` restores stages from the run-cache instead of recomputing them, against a
+real S3-API server on loopback (moto's server, as DVC's S3 plugin is tested); a directory remote
+read over HTTP by a fresh clone's `dvc repro --pull --allow-missing`; a remote whose probe write
+fails (a bucket that does not exist) stops `oodrl suite run`
 in one line, before anything runs."""
 
 from __future__ import annotations
@@ -60,16 +61,16 @@ def s3_server(monkeypatch):
     server.stop()
 
 
-@pytest.fixture(params=["directory", "s3"])
-def remote(request, tmp_path) -> dict[str, str]:
-    """The remote's `dvc remote add` URL and `dvc remote modify` options."""
-    if request.param == "directory":
-        return {"url": str(tmp_path / "shared" / "oodrl")}
+@pytest.fixture
+def remote(s3_server) -> dict[str, str]:
+    """An S3 remote's `dvc remote add` URL and `dvc remote modify` options. A directory remote
+    goes the same way through DVC; its push of every output and run-cache entry, and a fresh
+    clone restoring from it, are test_readonly_remote.py's lab (`published`) and this module's
+    first test."""
     import boto3
 
-    endpoint = request.getfixturevalue("s3_server")
-    boto3.client("s3", endpoint_url=endpoint).create_bucket(Bucket=BUCKET)
-    return {"url": f"s3://{BUCKET}/oodrl", "endpointurl": endpoint}
+    boto3.client("s3", endpoint_url=s3_server).create_bucket(Bucket=BUCKET)
+    return {"url": f"s3://{BUCKET}/oodrl", "endpointurl": s3_server}
 
 
 def configure(project: Path, remote: dict[str, str]) -> None:
