@@ -10,8 +10,9 @@ environment; only files under the clone's own src/oodrl count (a test that impor
 copy of the package elsewhere adds nothing). The revisions run one after the other, never side
 by side: a loaded machine makes time-limited tests fail, and a failed test covers less.
 
-Prints, per REV, the pytest summary line and the line coverage (statements run / statements),
-then exits 1 if any REV's tests failed, since its coverage then understates what passes cover.
+Prints, per REV, the tests that failed, the pytest summary line and the line coverage (statements
+run / statements), then exits 1 if any REV's tests failed, since its coverage then understates
+what passes cover.
 """
 
 from __future__ import annotations
@@ -62,7 +63,11 @@ def measure(rev: str, base: Path, tests: list[str], workers: int) -> tuple[str, 
         "-p", "no:cacheprovider", "-n", str(workers), *tests,
         check=False,
     )  # fmt: skip
-    summary = (done.stdout.strip().splitlines() or ["(no output)"])[-1]
+    lines = done.stdout.strip().splitlines()
+    summary = (lines or ["(no output)"])[-1]
+    for line in lines:  # pytest's short summary: which tests failed, so a rerun can tell why
+        if line.startswith(("FAILED ", "ERROR ")):
+            print(f"{rev}: {line}", flush=True)
     run(clone, str(venv / "coverage"), "combine", f"--rcfile={rc}", "-q")
     report = base / "coverage.json"
     run(clone, str(venv / "coverage"), "json", f"--rcfile={rc}", "-q", "-o", str(report))
