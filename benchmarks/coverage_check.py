@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -44,8 +45,11 @@ def coverage_rc(clone: Path, data: Path) -> str:
     )
 
 
-def measure(rev: str, base: Path, tests: list[str], workers: int) -> tuple[str, float, bool]:
-    """(pytest's summary line, percent of src/oodrl's statements run, whether pytest passed)."""
+def measure(
+    rev: str, base: Path, tests: list[str], workers: int, keep: Path | None
+) -> tuple[str, float, bool]:
+    """(pytest's summary line, percent of src/oodrl's statements run, whether pytest passed);
+    coverage.py's JSON report (per file, the lines missed) copied into `keep` as REV.json."""
     clone = base / "clone"
     run(base, "git", "clone", "-q", str(ROOT), str(clone))
     run(clone, "git", "checkout", "-q", rev)
@@ -72,6 +76,9 @@ def measure(rev: str, base: Path, tests: list[str], workers: int) -> tuple[str, 
     report = base / "coverage.json"
     run(clone, str(venv / "coverage"), "json", f"--rcfile={rc}", "-q", "-o", str(report))
     totals = json.loads(report.read_text())["totals"]
+    if keep is not None:
+        keep.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(report, keep / f"{rev}.json")
     return summary, 100.0 * totals["covered_lines"] / totals["num_statements"], done.returncode == 0
 
 
@@ -80,11 +87,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("revs", nargs="+", help="commits to measure, one after the other")
     parser.add_argument("--tests", nargs="*", default=[], help="test paths (default: all)")
     parser.add_argument("--workers", type=int, default=2, help="pytest -n (the README's: 2)")
+    parser.add_argument("--keep-json", type=Path, help="a folder for each REV's JSON report")
     args = parser.parse_args(argv)
     passed = True
     for rev in args.revs:
         with tempfile.TemporaryDirectory(prefix="oodrl-coverage-") as tmp:
-            summary, percent, ok = measure(rev, Path(tmp), args.tests, args.workers)
+            summary, percent, ok = measure(rev, Path(tmp), args.tests, args.workers, args.keep_json)
         passed &= ok
         print(f"{rev}: {percent:.2f}% of src/oodrl's lines run  [{summary}]", flush=True)
     return 0 if passed else 1
