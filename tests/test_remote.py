@@ -2,8 +2,7 @@
 machine's `dvc repro` restores stages from the run-cache instead of recomputing them, against a
 real S3-API server on loopback (moto's server, as DVC's S3 plugin is tested); a directory remote
 read over HTTP by a fresh clone's `dvc repro --pull --allow-missing`; a remote whose probe write
-fails (a bucket that does not exist) stops `oodrl suite run`
-in one line, before anything runs."""
+fails (a bucket that does not exist) stops `oodrl suite run` in one line, before anything runs."""
 
 from __future__ import annotations
 
