@@ -669,7 +669,7 @@ def _as_recorded(stages: dict[str, Any]) -> None:
     """A template's stages as a pipeline of recorded data has them (RECORDED_TEMPLATE): the
     stages that need a policy or a simulator dropped, the clean sets imported, and the policy
     file named by the commands that still take one replaced."""
-    variant = _yaml().load(RECORDED_TEMPLATE.read_text())
+    variant = _template(RECORDED_TEMPLATE)  # a copy: its stages move into the pipeline
     kept = None
     for name in list(stages):
         if name in variant["drop"]:
