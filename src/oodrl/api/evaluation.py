@@ -212,15 +212,22 @@ def _given_arguments(model: Any) -> dict[str, Any]:
     """The constructor arguments of a library model that differ from its class's defaults."""
     import inspect
 
-    if not callable(getattr(model, "get_params", None)):
+    arguments = _arguments(model)
+    if arguments is None:
         return {}
     try:
-        signature = inspect.signature(type(model)).parameters
-    except (TypeError, ValueError):
-        signature = {}
+        # A default instance's, not the signature's: river turns some arguments into other
+        # values as it stores them (HalfSpaceTrees' `limits`, None, into a defaultdict).
+        defaults = _arguments(type(model)()) or {}
+    except Exception:  # a class with required arguments: its signature's defaults
+        try:
+            signature = inspect.signature(type(model)).parameters
+        except (TypeError, ValueError):
+            signature = {}
+        defaults = {key: parameter.default for key, parameter in signature.items()}
     given = {}
-    for key, value in model.get_params(deep=False).items():
-        default = signature[key].default if key in signature else inspect.Parameter.empty
+    for key, value in arguments.items():
+        default = defaults.get(key, inspect.Parameter.empty)
         try:
             same = default is value or bool(default == value)
         except Exception:  # an array or another value without one truth value
@@ -228,6 +235,16 @@ def _given_arguments(model: Any) -> dict[str, Any]:
         if not same:
             given[key] = value
     return given
+
+
+def _arguments(model: Any) -> dict[str, Any] | None:
+    """A library model's constructor arguments as it stores them: scikit-learn's and PyOD's
+    `get_params`, river's `_get_params`; None for a model that lists none."""
+    if callable(getattr(model, "get_params", None)):
+        return model.get_params(deep=False)
+    if callable(getattr(model, "_get_params", None)):
+        return model._get_params()
+    return None
 
 
 def sized_params(pipeline: Pipeline, size: str, seed: int | None) -> Params:

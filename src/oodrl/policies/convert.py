@@ -127,10 +127,14 @@ def normalization(path: Path | None) -> dict[str, Any] | None:
             stats = pickle.load(file)  # noqa: S301 - the user's own VecNormalize file
     except Exception as error:  # unpickling fails in many ways on a foreign file
         raise PolicyError(f"{path}: not a VecNormalize file ({type(error).__name__}).") from None
-    if not hasattr(stats, "obs_rms") or not hasattr(stats, "clip_obs"):
+    # Its own attributes, not getattr: an unpickled VecNormalize wraps no environment, and its
+    # __getattr__ asks that missing one for any attribute it lacks, recursing without end
+    # (SB3 sets no obs_rms when it normalised rewards alone).
+    own = getattr(stats, "__dict__", {})
+    if "clip_obs" in own and not own.get("norm_obs", True):
+        return None  # it normalised rewards alone
+    if "obs_rms" not in own or "clip_obs" not in own:
         raise PolicyError(f"{path}: not a VecNormalize file (no observation statistics).")
-    if not getattr(stats, "norm_obs", True):
-        return None
     if isinstance(stats.obs_rms, dict):
         raise PolicyError(f"{path}: normalises a Dict observation; oodrl needs a flat Box.")
     return {
