@@ -9,6 +9,7 @@ a maintainer would edit it."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 from pathlib import Path
 
@@ -98,6 +99,88 @@ def test_a_lock_edited_by_hand_is_stale_naming_the_stage_and_key(repo):
     assert found.status == "stale"
     assert (
         found.reasons[0] == "collect_id: param data.n_id (data/params.yaml) is not the locked value"
+    )
+
+
+def test_with_stamps_the_reasons_name_the_stamps_that_moved_or_say_none_did(repo):
+    """docs/how-to/change-protocol.md: `stamps=True` tells a source edit that changes stage code
+    from one that does not, by computing the code stamps as check_params would (seconds)."""
+    kde = repo / "src" / "oodrl" / "detectors" / "kde.py"
+    kde.write_text(kde.read_text() + "# an edit\n")
+    found = state(repo, stamps=True)
+    assert found.status == "stale"
+    assert "detectors/kde_density:fit: code stamp data/code/fit-kde_density.txt changed" in (
+        found.reasons
+    )
+    kde.write_text(kde.read_text().removesuffix("# an edit\n"))
+    edit(repo / PROJECT / "params.yaml", "  T: 500 ", "  T: 499 ")  # read by no stamp
+    assert state(repo, stamps=True).reasons == (
+        "check_params: params.yaml changed since its lock",
+        "no code stamp changed with it",
+    )
+
+
+def _lock_entry(lock: Path, stage: str) -> tuple[int, int]:
+    """Where a stage's entry lies in a lock's text (edited as text: a YAML round trip would
+    change how its params values read)."""
+    text = lock.read_text()
+    start = text.index(f"\n  {stage}:\n") + 1
+    end = text.find("\n  ", start + 1)
+    while text[end + 3] == " ":  # a deeper line: the entry goes on
+        end = text.find("\n  ", end + 1)
+    return start, end + 1
+
+
+@pytest.mark.parametrize(
+    "stage, old, new, reason",
+    [
+        ("collect_id", "--out data/id.zarr", "--out data/elsewhere.zarr",
+         "collect_id: its command is not the locked one"),
+        ("collect_eval", None, None, "dvc.yaml: stage collect_eval is not in its lock"),
+    ],
+)  # fmt: skip
+def test_a_lock_entry_unlike_its_stage_is_stale_naming_it(repo, stage, old, new, reason):
+    lock = repo / PROJECT / "dvc.lock"
+    text = lock.read_text()
+    start, end = _lock_entry(lock, stage)
+    entry = "" if old is None else text[start:end].replace(old, new)
+    lock.write_text(text[:start] + entry + text[end:])
+    found = state(repo)
+    assert found.status == "stale" and reason in found.reasons, found.reasons
+
+
+def test_a_dep_that_is_not_what_its_stage_wrote_is_stale(repo):
+    """A lock whose stage read another output than the one its writer's lock records."""
+    lock = repo / PROJECT / "dvc.lock"
+    text = lock.read_text()
+    start, end = _lock_entry(lock, "collect_eval")
+    entry = text[start:end]
+    policy = re.search(r"- path: models/policy.pt\n\s+hash: md5\n\s+md5: (\w+)", entry)[1]
+    lock.write_text(text[:start] + entry.replace(policy, "0" * 32) + text[end:])
+    assert state(repo).reasons == ("collect_eval: models/policy.pt is not what its stage wrote",)
+
+
+def test_a_stamp_two_stages_read_at_two_hashes_is_stale(repo):
+    lock = repo / PROJECT / "detectors" / "kde_density" / "dvc.lock"
+    text = lock.read_text()
+    start, end = _lock_entry(lock, "score")
+    entry = text[start:end]
+    stamp_md5 = re.search(r"score-kde_density.txt\n\s+hash: md5\n\s+md5: (\w+)", entry)[1]
+    lock.write_text(text[:start] + entry.replace(stamp_md5, "0" * 32) + text[end:])
+    assert any(
+        "code stamp data/code/score-kde_density.txt is not the other stages' one" in reason
+        for reason in state(repo).reasons
+    )
+
+
+def test_a_results_stamp_that_is_no_version_is_stale_naming_the_file(repo):
+    results = repo / PROJECT / "reports" / "results.yaml"
+    results.write_text(re.sub(r"(?m)^protocol_version: .*$", "protocol_version: four",
+                              results.read_text()))  # fmt: skip
+    found = state(repo)
+    assert (found.status, found.built_version) == ("stale", migration.NOT_BUILT)
+    assert found.reasons == (
+        "reports/results.yaml: protocol_version must be an integer; got 'four'",
     )
 
 

@@ -141,6 +141,62 @@ def test_a_killed_lock_holder_blocks_nothing(tmp_path):
     assert git(repo, "status", "--porcelain", "--untracked-files=all") == ""
 
 
+def _held(path: Path) -> bool:
+    """Whether some open file holds the lock (flock: two opens conflict even in one process)."""
+    import fcntl
+
+    descriptor = os.open(path, os.O_RDWR)
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    finally:
+        os.close(descriptor)  # releases it if taken here
+    return False
+
+
+def test_the_process_holding_the_checkout_takes_it_again_and_keeps_it_to_the_outer_end(tmp_path):
+    """A verb that runs another's code in-process (`suite try` builds with `suite run`'s) takes
+    the lock it holds again without refusing itself; the checkout stays held until the outer
+    holder ends."""
+    repo = tiny_suite(tmp_path / "repo")
+    with checkout_lock(repo, "suite try"):
+        with checkout_lock(repo, "suite run"):
+            assert _held(lock_path(repo))
+        assert _held(lock_path(repo))  # the inner end released nothing
+    assert not _held(lock_path(repo))
+
+
+def test_a_holder_yet_to_write_its_pid_is_named_so(tmp_path):
+    """The holder writes its pid just after taking the lock: a refusal in that instant says so
+    rather than naming no one or a previous holder."""
+    import fcntl
+
+    repo = tiny_suite(tmp_path / "repo")
+    path = lock_path(repo)
+    path.parent.mkdir(exist_ok=True)
+    descriptor = os.open(path, os.O_RDWR | os.O_CREAT)
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)  # taken, nothing written yet
+        busy = pytest.raises(CheckoutBusy, match=r"\(its pid not yet written\)")
+        with busy, checkout_lock(repo, "new"):
+            pass
+    finally:
+        os.close(descriptor)
+
+
+def test_a_git_checkout_without_dvc_keeps_its_lock_in_git(tmp_path):
+    """A checkout with no DVC project yet (`oodrl new` makes one) is still guarded: its lock
+    lives in .git, never in the tracked tree."""
+    repo = tmp_path / "repo"
+    (repo / "sub").mkdir(parents=True)
+    git(repo, "init", "-q")
+    assert lock_path(repo / "sub") == repo / ".git" / "oodrl-run.lock"
+    with checkout_lock(repo / "sub", "new"):
+        assert _held(repo / ".git" / "oodrl-run.lock")
+    assert git(repo, "status", "--porcelain", "--untracked-files=all") == ""
+
+
 LEAVE_AND_DIE = """
 import os, signal, sys
 from pathlib import Path
