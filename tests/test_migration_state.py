@@ -120,53 +120,47 @@ def test_with_stamps_the_reasons_name_the_stamps_that_moved_or_say_none_did(repo
     )
 
 
-def _lock_entry(lock: Path, stage: str) -> tuple[int, int]:
-    """Where a stage's entry lies in a lock's text (edited as text: a YAML round trip would
-    change how its params values read)."""
+def edit_entry(lock: Path, stage: str, change) -> None:
+    """Replace a stage's entry in a lock by `change(entry)`, as text: a YAML round trip would
+    change how its params values read."""
     text = lock.read_text()
     start = text.index(f"\n  {stage}:\n") + 1
     end = text.find("\n  ", start + 1)
     while text[end + 3] == " ":  # a deeper line: the entry goes on
         end = text.find("\n  ", end + 1)
-    return start, end + 1
+    lock.write_text(text[:start] + change(text[start : end + 1]) + text[end + 1 :])
+
+
+def zero_md5(path: str):
+    """An entry's change: the md5 it records for `path`, zeroed."""
+
+    def change(entry: str) -> str:
+        md5 = re.search(rf"{re.escape(path)}\n\s+hash: md5\n\s+md5: (\w+)", entry)[1]
+        return entry.replace(md5, "0" * 32)
+
+    return change
 
 
 @pytest.mark.parametrize(
-    "stage, old, new, reason",
+    "stage, change, reason",
     [
-        ("collect_id", "--out data/id.zarr", "--out data/elsewhere.zarr",
+        ("collect_id", lambda entry: entry.replace("--out data/id.zarr", "--out data/x.zarr"),
          "collect_id: its command is not the locked one"),
-        ("collect_eval", None, None, "dvc.yaml: stage collect_eval is not in its lock"),
+        ("collect_eval", lambda entry: "", "dvc.yaml: stage collect_eval is not in its lock"),
+        ("collect_eval", zero_md5("models/policy.pt"),
+         "collect_eval: models/policy.pt is not what its stage wrote"),
     ],
+    ids=["command", "no entry", "another dep"],
 )  # fmt: skip
-def test_a_lock_entry_unlike_its_stage_is_stale_naming_it(repo, stage, old, new, reason):
-    lock = repo / PROJECT / "dvc.lock"
-    text = lock.read_text()
-    start, end = _lock_entry(lock, stage)
-    entry = "" if old is None else text[start:end].replace(old, new)
-    lock.write_text(text[:start] + entry + text[end:])
+def test_a_lock_entry_unlike_its_stage_is_stale_naming_it(repo, stage, change, reason):
+    edit_entry(repo / PROJECT / "dvc.lock", stage, change)
     found = state(repo)
-    assert found.status == "stale" and reason in found.reasons, found.reasons
-
-
-def test_a_dep_that_is_not_what_its_stage_wrote_is_stale(repo):
-    """A lock whose stage read another output than the one its writer's lock records."""
-    lock = repo / PROJECT / "dvc.lock"
-    text = lock.read_text()
-    start, end = _lock_entry(lock, "collect_eval")
-    entry = text[start:end]
-    policy = re.search(r"- path: models/policy.pt\n\s+hash: md5\n\s+md5: (\w+)", entry)[1]
-    lock.write_text(text[:start] + entry.replace(policy, "0" * 32) + text[end:])
-    assert state(repo).reasons == ("collect_eval: models/policy.pt is not what its stage wrote",)
+    assert found.status == "stale" and found.reasons[0] == reason, found.reasons
 
 
 def test_a_stamp_two_stages_read_at_two_hashes_is_stale(repo):
     lock = repo / PROJECT / "detectors" / "kde_density" / "dvc.lock"
-    text = lock.read_text()
-    start, end = _lock_entry(lock, "score")
-    entry = text[start:end]
-    stamp_md5 = re.search(r"score-kde_density.txt\n\s+hash: md5\n\s+md5: (\w+)", entry)[1]
-    lock.write_text(text[:start] + entry.replace(stamp_md5, "0" * 32) + text[end:])
+    edit_entry(lock, "score", zero_md5("data/code/score-kde_density.txt"))
     assert any(
         "code stamp data/code/score-kde_density.txt is not the other stages' one" in reason
         for reason in state(repo).reasons

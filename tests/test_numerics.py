@@ -68,17 +68,20 @@ def test_uncertain_entries_take_the_exact_path():
     assert numerics.linear(x, w)[0, 0] == np.float32(1.0 + 2.0**-22)
 
 
+def exact_tanh(value: float) -> Fraction:
+    """tanh to 60 significant digits, as a fraction."""
+    import decimal
+
+    with decimal.localcontext() as context:
+        context.prec = 60
+        e2x = (2 * decimal.Decimal(float(value))).exp()
+        return Fraction((e2x - 1) / (e2x + 1))
+
+
 @settings(max_examples=200, deadline=None)
 @given(arrays(np.float32, (16,), elements=st.floats(-20, 20, width=32)))
 def test_tanh_is_correctly_rounded(x):
-    import decimal
-
-    expected = []
-    with decimal.localcontext() as context:
-        context.prec = 60
-        for value in x:
-            e2x = (2 * decimal.Decimal(float(value))).exp()
-            expected.append(numerics._nearest_float32(Fraction((e2x - 1) / (e2x + 1))))
+    expected = [numerics._nearest_float32(exact_tanh(value)) for value in x]
     np.testing.assert_array_equal(numerics.tanh(x), np.array(expected, np.float32))
 
 
@@ -90,13 +93,8 @@ TANH_NEAR_A_MIDPOINT = np.float32(0.4648849368095398)
 
 @pytest.mark.parametrize("sign", [1, -1])
 def test_tanh_near_a_float32_midpoint_is_correctly_rounded(sign):
-    import decimal
-
     x = np.float32(sign * TANH_NEAR_A_MIDPOINT)
-    with decimal.localcontext() as context:
-        context.prec = 60
-        e2x = (2 * decimal.Decimal(float(x))).exp()
-        exact = Fraction((e2x - 1) / (e2x + 1))
+    exact = exact_tanh(x)
     below = np.float32(float(exact))  # float64 then float32: either neighbour of the midpoint
     below = below if Fraction(float(below)) <= exact else np.nextafter(below, np.float32(-1))
     above = np.nextafter(below, np.float32(1))
