@@ -41,12 +41,6 @@ def save_checkpoint(path: Path, network: NoisyQNetwork) -> Path:
 
 
 @pytest.fixture
-def noisy_network() -> NoisyQNetwork:
-    torch.manual_seed(0)
-    return NoisyQNetwork(8, 4, (32, 32), sigma0=0.5)
-
-
-@pytest.fixture
 def checkpoint(tmp_path: Path, noisy_network: NoisyQNetwork) -> Path:
     return save_checkpoint(tmp_path / "policy.pt", noisy_network)
 

@@ -40,12 +40,6 @@ def sb3():
     return pytest.importorskip("stable_baselines3")
 
 
-@pytest.fixture
-def noisy_network() -> NoisyQNetwork:
-    torch.manual_seed(0)
-    return NoisyQNetwork(8, 4, (32, 32), sigma0=0.5)
-
-
 class SpacesEnv(gym.Env):
     """An environment of given spaces: SB3 and VecNormalize read its spaces and never step it."""
 
