@@ -4,6 +4,7 @@ edited file, and only those."""
 
 from __future__ import annotations
 
+import ast
 import json
 import shlex
 import shutil
@@ -19,6 +20,7 @@ from oodrl.errors import ConfigError
 from oodrl.io.layout import detector_pipeline
 from oodrl.suite.environments import MORE_POLICIES, PIPELINE_DIRS, suite_runs
 from oodrl.suite.pipeline import (
+    _LINE,
     DETECTOR_TEMPLATE,
     FILLED_DIRS,
     FILLED_DIRS_IGNORED,
@@ -26,6 +28,8 @@ from oodrl.suite.pipeline import (
     SUBREPO_FILES,
     TEMPLATE,
     Project,
+    _command_nodes,
+    _source_segment,
     check_files,
     check_pipeline,
     kind_files,
@@ -247,6 +251,27 @@ def test_a_cli_edit_restamps_only_the_verbs_that_run_it(tmp_path, repo_root):
     after = stamps()
     _insert_statement(cli, None)
     assert all(stamps()[verb] != after[verb] for verb in before)
+
+
+def test_cli_code_is_cut_out_as_ast_cuts_it(repo_root):
+    """A verb's cli.py code is cut from lines split once, as `ast.get_source_segment` splits
+    them (at \\r\\n, \\r and \\n alone), with its padding of a node's indent: the same text, so
+    the same stamps, on line endings, tabs, multi-byte characters and a form feed."""
+    source = (
+        "x = 1\r\ndef f(a,\r\n      b):\r\n\treturn 'é\\u2028'  # é\x0c\u2028ok\n"
+        "\x0cclass C:\r    y = ('é', (1,\n         2))\n\nif x:\n\tz = [f(1, 2),\n\t     3]"
+    )
+    lines = _LINE.findall(source)
+    nodes = [n for n in ast.walk(ast.parse(source)) if getattr(n, "end_lineno", None)]
+    assert len(nodes) > 20
+    for node in nodes:
+        assert _source_segment(lines, node) == ast.get_source_segment(source, node, padded=True)
+    cli = repo_root / "src" / "oodrl" / "cli.py"
+    text = cli.read_text()
+    nodes = sorted(_command_nodes(ast.parse(text), "fit"), key=lambda node: node.lineno)
+    assert Project(repo_root).command_source("fit") == "\n".join(
+        ast.get_source_segment(text, node, padded=True) for node in nodes
+    )
 
 
 # -- the closure -----------------------------------------------------------------------------

@@ -30,7 +30,7 @@ import os
 import re
 import shlex
 from collections.abc import Iterable, Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -90,6 +90,9 @@ class Project:
 
     root: Path
     base: Path | None = None  # None: the root
+    # module -> module_file's answer (a pipeline's stamps ask it tens of thousands of times):
+    # a Project is asked about one state of the sources, no module added or removed meanwhile.
+    _files: dict[str, Path | None] = field(default_factory=dict, compare=False, repr=False)
 
     @classmethod
     def of_pipeline(cls, pipeline_path: Path) -> Project:
@@ -119,6 +122,11 @@ class Project:
 
     def module_file(self, module: str) -> Path | None:
         """The project file that `import module` executes, or None if it is not ours."""
+        if module not in self._files:
+            self._files[module] = self._find_module_file(module)
+        return self._files[module]
+
+    def _find_module_file(self, module: str) -> Path | None:
         relative = Path(*module.split("."))
         for source in (self.root / CODE_DIR, self.pipeline_dir):
             base = source / relative
@@ -162,9 +170,8 @@ class Project:
 
     def command_closure(self, verb: str) -> set[Path]:
         """The project files the CLI command `oodrl <verb>` can execute (components aside)."""
-        package = CLI_MODULE.rpartition(".")[0]
-        nodes = (node for top in _command_nodes(self.cli_tree(), verb) for node in ast.walk(top))
-        names = imported_modules(nodes, package)
+        cli = self.cli_file()
+        names = _command_imports(cli, cli.stat().st_mtime_ns, verb)
         return self.closure([CLI_MODULE], known={CLI_MODULE: names})
 
     def command_source(self, verb: str) -> str:
@@ -178,9 +185,6 @@ class Project:
         if cli is None:
             raise ConfigError(f"{self.root}: no {CLI_MODULE} module under {CODE_DIR}/.")
         return cli
-
-    def cli_tree(self) -> ast.Module:
-        return _parse(self.cli_file())
 
 
 def _with_parents(module: str) -> list[str]:
@@ -228,12 +232,37 @@ def stage_source(path: Path) -> bytes:
 
 
 @cache
+def _command_imports(cli: Path, mtime_ns: int, verb: str) -> frozenset[str]:
+    """The modules cli.py's code for `oodrl <verb>` imports, once a cli.py version and verb."""
+    nodes = (node for top in _command_nodes(_parse(cli), verb) for node in ast.walk(top))
+    return frozenset(imported_modules(nodes, CLI_MODULE.rpartition(".")[0]))
+
+
+@cache
 def _command_source(cli: Path, mtime_ns: int, verb: str) -> str:
     """`Project.command_source`, once a cli.py version and verb: every stage kind of a verb
-    asks it, and `ast.get_source_segment` splits the whole file again for each node."""
-    source = cli.read_text()
+    asks it."""
+    lines = _LINE.findall(cli.read_text())
     nodes = sorted(_command_nodes(_parse(cli), verb), key=lambda node: node.lineno)
-    return "\n".join(ast.get_source_segment(source, node, padded=True) or "" for node in nodes)
+    return "\n".join(_source_segment(lines, node) for node in nodes)
+
+
+#: A line as `ast.get_source_segment` splits source: ended by \r\n, \r or \n (not \f).
+_LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+\Z")
+
+
+def _source_segment(lines: list[str], node: ast.AST) -> str:
+    """`ast.get_source_segment(source, node, padded=True)` of a source split into `lines` once:
+    ast splits the whole source again for each node, in Python, and cli.py has hundreds of them
+    (most of `oodrl check-params --code`'s time went there)."""
+    first, last = node.lineno - 1, node.end_lineno - 1
+    start, end = node.col_offset, node.end_col_offset
+    head = lines[first].encode()
+    if first == last:
+        return head[start:end].decode()
+    padding = re.sub(r"[^\f\t]", " ", head[:start].decode())
+    tail = lines[last].encode()[:end].decode()
+    return "".join([padding + head[start:].decode(), *lines[first + 1 : last], tail])
 
 
 @cache
@@ -533,9 +562,14 @@ def _template(path: Path):
 
 
 def _load_pipeline(path: Path):
+    """A DVC file's data, read as DVC reads it (YAML 1.2: `on` and `no` are strings, `1e-3` a
+    number), by ruamel's libyaml-based loader: the stamps need no comments, and the round-trip
+    loader took half of `oodrl check-params --code` in an environment's 26 DVC files."""
+    from ruamel.yaml import YAML
+
     if not path.is_file():
         raise ConfigError(f"{path}: no such pipeline file.")
-    return _yaml().load(path.read_text())
+    return YAML(typ="safe").load(path.read_text())
 
 
 def _params_chain(params_path: Path) -> list[Path]:
@@ -716,8 +750,8 @@ def _write_out_lists(stages: dict[str, Any], params: dict[str, Any]) -> None:
     benchmark = params.get("benchmark") or {}
     lists = {marker: list(benchmark.get(key) or []) for marker, key in EACH.items()}
     for _, body in _stage_bodies(stages):
-        for field in ("deps", "outs"):
-            entries = body.get(field)
+        for section in ("deps", "outs"):
+            entries = body.get(section)
             if not entries:
                 continue
             # The blank line and comments after a sequence's last entry (before the next stage)
