@@ -186,11 +186,17 @@ def _takes_ood_and_sweep_together(src: Path) -> bool:
     return "exactly one of --eval" not in (src / "oodrl" / "cli.py").read_text()
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def revisions_parser(description: str) -> argparse.ArgumentParser:
+    """The arguments of a benchmark that times two revisions alternately (see `export`)."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--base", required=True, help="old revision (git)")
     parser.add_argument("--new", default="worktree", help="new revision, or 'worktree'")
     parser.add_argument("--repeats", type=int, default=3)
+    return parser
+
+
+def main() -> None:
+    parser = revisions_parser(__doc__.split("\n")[0])
     parser.add_argument("--cli", action="store_true", help="time the whole oodrl commands")
     parser.add_argument(
         "--only", nargs="+", metavar="PATH", help="new = base with only these src/ files from --new"

@@ -14,7 +14,6 @@ stamps hash this checkout's files whichever code computes them, so they must not
 
 from __future__ import annotations
 
-import argparse
 import os
 import resource
 import subprocess
@@ -22,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from numerics_speed import ROOT, export
+from numerics_speed import ROOT, export, revisions_parser
 
 #: The root and two environments (one MuJoCo): the projects timed without --all.
 DEFAULT_PROJECTS = (".", "pipeline/cartpole", "pipeline/hopper")
@@ -55,10 +54,7 @@ def stamp_bytes(stamps: Path) -> dict[str, bytes]:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--base", required=True, help="git revision (or 'worktree')")
-    parser.add_argument("--new", default="worktree", help="git revision (or 'worktree')")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser = revisions_parser(__doc__.split("\n")[0])
     parser.add_argument("--all", action="store_true", help="every project, not three")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
