@@ -19,6 +19,7 @@ import yaml
 from oodrl.errors import ConfigError, StoreError
 from oodrl.metrics import stamp
 from oodrl.suite import migration
+from oodrl.testing.pipeline import run
 
 PROJECT = "pipeline/cartpole"
 
@@ -255,10 +256,7 @@ def test_dvc_agrees_on_current_and_stale(repo):
     up to date exactly when the project is current."""
 
     def dvc_up_to_date() -> bool:
-        done = subprocess.run(
-            ["dvc", "repro", "--allow-missing", "--dry"],
-            cwd=repo / PROJECT, capture_output=True, text=True, check=True,
-        )  # fmt: skip
+        done = run(repo / PROJECT, "dvc", "repro", "--allow-missing", "--dry")
         return "Data and pipelines are up to date" in done.stdout
 
     for command in (["git", "init", "-q"], ["git", "add", "-A"], ["git", "commit", "-qm", "c"]):
@@ -286,17 +284,17 @@ def test_load_results_refuses_the_suite_s_runs_of_two_versions(repo_root, tmp_pa
 
     runs = list(suite_runs().values())
     paths = ["pipeline/suite", "pipeline/params.yaml", "params.yaml"]
-    paths += [f"{run}/{name}" for run in runs for name in ("params.yaml", "dvc.yaml")]
+    paths += [f"{path}/{name}" for path in runs for name in ("params.yaml", "dvc.yaml")]
     archive = subprocess.run(
         ["git", "archive", "HEAD", "--", *paths], cwd=repo_root, capture_output=True, check=True
     ).stdout
     subprocess.run(["tar", "-x", "-C", str(tmp_path)], input=archive, check=True)
     version = stamp.PROTOCOL_VERSION
-    for run in runs:
-        (tmp_path / run / "reports").mkdir(parents=True, exist_ok=True)
-        older = run == runs[0]
+    for path in runs:
+        (tmp_path / path / "reports").mkdir(parents=True, exist_ok=True)
+        older = path == runs[0]
         text = f"protocol_version: {version - older}\nrecords: []\n"
-        (tmp_path / run / "reports" / "results.yaml").write_text(text)
+        (tmp_path / path / "reports" / "results.yaml").write_text(text)
     with pytest.raises(StoreError) as error:
         oodrl.load_results(tmp_path / "pipeline" / "suite", kind="results")
     message = str(error.value)
