@@ -30,8 +30,9 @@ DEFAULT_PROJECTS = (".", "pipeline/cartpole", "pipeline/hopper")
 def projects(every: bool) -> list[str]:
     if not every:
         return list(DEFAULT_PROJECTS)
-    found = sorted(p.parent for p in (ROOT / "pipeline").glob("*/dvc.yaml"))
-    return ["."] + [str(p.relative_to(ROOT)) for p in found if p.name != "suite"]
+    from oodrl.suite.pipeline import pipeline_dirs
+
+    return [str(d.relative_to(ROOT)) for d in pipeline_dirs(ROOT)]
 
 
 def check_params(src: Path, project: str, stamps: Path) -> float:
