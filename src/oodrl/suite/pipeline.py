@@ -92,7 +92,9 @@ class Project:
     base: Path | None = None  # None: the root
     # module -> module_file's answer (a pipeline's stamps ask it tens of thousands of times):
     # a Project is asked about one state of the sources, no module added or removed meanwhile.
-    _files: dict[str, Path | None] = field(default_factory=dict, compare=False, repr=False)
+    _files: dict[str, Path | None] = field(
+        default_factory=dict, init=False, compare=False, repr=False
+    )
 
     @classmethod
     def of_pipeline(cls, pipeline_path: Path) -> Project:
@@ -231,22 +233,6 @@ def stage_source(path: Path) -> bytes:
     return (kept.rstrip("\n") + "\n").encode()
 
 
-@cache
-def _command_imports(cli: Path, mtime_ns: int, verb: str) -> frozenset[str]:
-    """The modules cli.py's code for `oodrl <verb>` imports, once a cli.py version and verb."""
-    nodes = (node for top in _command_nodes(_parse(cli), verb) for node in ast.walk(top))
-    return frozenset(imported_modules(nodes, CLI_MODULE.rpartition(".")[0]))
-
-
-@cache
-def _command_source(cli: Path, mtime_ns: int, verb: str) -> str:
-    """`Project.command_source`, once a cli.py version and verb: every stage kind of a verb
-    asks it."""
-    lines = _LINE.findall(cli.read_text())
-    nodes = sorted(_command_nodes(_parse(cli), verb), key=lambda node: node.lineno)
-    return "\n".join(_source_segment(lines, node) for node in nodes)
-
-
 #: A line as `ast.get_source_segment` splits source: ended by \r\n, \r or \n (not \f).
 _LINE = re.compile(r"[^\r\n]*(?:\r\n|\r|\n)|[^\r\n]+\Z")
 
@@ -263,6 +249,22 @@ def _source_segment(lines: list[str], node: ast.AST) -> str:
     padding = re.sub(r"[^\f\t]", " ", head[:start].decode())
     tail = lines[last].encode()[:end].decode()
     return "".join([padding + head[start:].decode(), *lines[first + 1 : last], tail])
+
+
+@cache
+def _command_imports(cli: Path, mtime_ns: int, verb: str) -> frozenset[str]:
+    """The modules cli.py's code for `oodrl <verb>` imports, once a cli.py version and verb."""
+    nodes = (node for top in _command_nodes(_parse(cli), verb) for node in ast.walk(top))
+    return frozenset(imported_modules(nodes, CLI_MODULE.rpartition(".")[0]))
+
+
+@cache
+def _command_source(cli: Path, mtime_ns: int, verb: str) -> str:
+    """`Project.command_source`, once a cli.py version and verb: every stage kind of a verb
+    asks it."""
+    lines = _LINE.findall(cli.read_text())
+    nodes = sorted(_command_nodes(_parse(cli), verb), key=lambda node: node.lineno)
+    return "\n".join(_source_segment(lines, node) for node in nodes)
 
 
 @cache
