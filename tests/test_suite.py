@@ -4,6 +4,7 @@ on unseen seeds."""
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -53,12 +54,38 @@ def test_committed_policy_report_meets_the_bar(run):
     assert report["evaluation"]["mean"] >= POLICY_BARS[env_id]
 
 
+#: Unseen episodes enough that the bar's margin in the committed report (its mean over 30
+#: episodes minus the bar) is this many standard errors of their mean, at least MIN_UNSEEN and
+#: at most the report's 30: MuJoCo's margins are 10 or more standard errors at 10 episodes (a
+#: HalfCheetah or Hopper episode is 1,000 steps, 0.5 s), LunarLander's need all 30.
+MARGIN_IN_STANDARD_ERRORS = 4.0
+MIN_UNSEEN = 10
+
+
+def unseen_episodes(env_id: str, report: dict) -> int:
+    evaluation = report["evaluation"]
+    margin = evaluation["mean"] - POLICY_BARS[env_id]
+    needed = (MARGIN_IN_STANDARD_ERRORS * evaluation["std"] / margin) ** 2
+    return min(evaluation["episodes"], max(MIN_UNSEEN, math.ceil(needed)))
+
+
+def test_unseen_episodes_grow_as_the_margin_shrinks():
+    report = {"evaluation": {"mean": 3000.0, "std": 100.0, "episodes": 30}}
+    assert unseen_episodes("Hopper-v5", report) == MIN_UNSEEN  # 1,000 above the bar
+    tight = {"evaluation": {"mean": 2050.0, "std": 100.0, "episodes": 30}}
+    assert unseen_episodes("Hopper-v5", tight) == 30  # 64 needed, the report's 30 at most
+    middle = {"evaluation": {"mean": 2100.0, "std": 100.0, "episodes": 30}}
+    assert unseen_episodes("Hopper-v5", middle) == 16
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("run", COMMITTED)
 def test_evaluate_policy_on_unseen_seeds_meets_the_bar(run, monkeypatch):
     env_id, path = COMMITTED[run]
+    episodes = unseen_episodes(env_id, json.loads(path.with_suffix(".json").read_text()))
     monkeypatch.chdir(ROOT)
-    args = ["--env", env_id, "--policy", str(path), "--episodes", "30", "--seed", "2000000"]
+    args = ["--env", env_id, "--policy", str(path), "--seed", "2000000"]
+    args += ["--episodes", str(episodes)]
     result = CliRunner().invoke(app, ["evaluate-policy", *args])
     assert result.exit_code == 0, result.output
     assert "bar" in result.output and "met" in result.output and "NOT met" not in result.output
