@@ -168,10 +168,10 @@ def one_protocol(paths: dict[str, Path]) -> dict[str, Path]:
     the suite's runs hold two, which no board ranks together (SPEC §26)."""
     from collections import Counter
 
-    from oodrl.io import yamlio
-    from oodrl.metrics.stamp import protocol_version
+    from oodrl.suite.migration import built_version
 
-    versions = {env: protocol_version(yamlio.load(p.read_text())) for env, p in paths.items()}
+    # Each file's stamp line alone (a results file is megabytes of YAML; read_inputs reads it).
+    versions = {env: built_version(p.parent.parent) for env, p in paths.items()}
     version, _ = max(Counter(versions.values()).items(), key=lambda item: (item[1], item[0]))
     return {env: path for env, path in paths.items() if versions[env] == version}
 
