@@ -891,8 +891,12 @@ def _importing_torch() -> bool:
 def _removing_a_folder(frame: object) -> bool:
     """Whether `frame` is inside shutil.rmtree: a store's `finally` removing its temporary
     folder, which an interrupt raised there would leave half removed."""
-    rmtree = getattr(sys.modules.get("shutil"), "rmtree", None)
-    code = getattr(rmtree, "__code__", None)
+    return _inside(frame, getattr(sys.modules.get("shutil"), "rmtree", None))
+
+
+def _inside(frame: object, function: object) -> bool:
+    """Whether `frame` is inside a call of `function` (None: never)."""
+    code = getattr(function, "__code__", None)
     while frame is not None and code is not None:
         if frame.f_code is code:
             return True
@@ -942,6 +946,12 @@ def main() -> None:
             # code that meets the pending exception terminates); raised inside a temporary
             # folder's removal, it leaves the folder half removed: deliver it once either is done.
             deliver_again(0.05)
+            return
+        if _inside(frame, unraisable):
+            # Landed in the hook below while it starts a redelivery (on a loaded machine, that
+            # redelivery's own signal can land there): raised there, it would be printed as a
+            # traceback and dropped. Delivered again once the hook is done, instead.
+            deliver_again(still_running_check_s)
             return
         if _raised_while_unwinding(sys.exc_info()[1]):
             deliver_again(still_running_check_s)  # already unwinding: only check it ends
