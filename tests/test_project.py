@@ -46,6 +46,15 @@ def test_ci_params_are_valid_and_reuse_the_committed_policy(repo_root):
     default = load_params(repo_root / "params.yaml")
     assert ci.policy.train == default.policy.train, "CI would retrain the policy"
     assert ci.benchmark == default.benchmark, "CI must exercise every stage of the pipeline"
+    # Its tiers block copies the tests' tiny pipelines' sizes (a YAML file cannot import them).
+    from oodrl.config import read_params_data
+    from oodrl.testing.pipeline import TINY_TIERS
+
+    tiers = read_params_data(repo_root / "ci" / "params.yaml")["tiers"]  # merged: search has more
+    assert {key: tiers[key] for key in TINY_TIERS if key != "search"} == {
+        key: value for key, value in TINY_TIERS.items() if key != "search"
+    }
+    assert {key: tiers["search"][key] for key in TINY_TIERS["search"]} == TINY_TIERS["search"]
 
 
 def _pins(constraints: str) -> dict[str, SpecifierSet]:
