@@ -137,8 +137,9 @@ def load_results(
     -----
     The suite's leaderboard loads in about a second (JSON). A pipeline's
     ``tier_results.yaml`` is a large YAML document: parsing it takes 8-13 s with libyaml
-    (PyYAML's ``CSafeLoader``, used when available) and far longer without. Protocol
-    version 4 stores results for programs too, and this function will read those.
+    (PyYAML's ``CSafeLoader``, used when available) and far longer without. A form made for
+    programs (JSON) comes with the next change of the stage that writes it, which rebuilds
+    every project.
 
     Examples
     --------
