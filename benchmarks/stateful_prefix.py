@@ -23,9 +23,11 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 from oodrl.config import load_params
 from oodrl.io.store import load_detector, read_sweep, read_tier_sets, read_trajectories
-from oodrl.protocol.scoring import _steps_from, first_difference
+from oodrl.protocol.scoring import SharedPrefixes, _steps_from
 
 
 def injector_sets(project: Path, injector: str) -> list:
@@ -44,14 +46,19 @@ def injector_sets(project: Path, injector: str) -> list:
     return sets
 
 
-def _first_new_step(first: dict, trajectory) -> int:
-    """As the stages' `SharedPrefixes` finds it: the first step at which `trajectory` differs
-    from the first stream of its seed (0 for that first stream)."""
-    seed = trajectory.info.get("seed")
-    if seed not in first:
-        first[seed] = trajectory
-        return 0
-    return first_difference(first[seed], trajectory)
+def suffixes_after_shared_prefixes(lists: list[list]) -> list[list]:
+    """Each stream's steps from the first one that differs from its seed's first stream, found
+    by the stages' own `SharedPrefixes` (fed zeros for scores: only the steps matter here)."""
+    shared, cut = SharedPrefixes(), []
+    for trajectories in lists:
+        kept = []
+        for trajectory in trajectories:
+            start = shared.first_new_step(trajectory)
+            shared.joined(trajectory, start, np.zeros(max(trajectory.T - start, 0)))
+            if (suffix := _steps_from(trajectory, start)) is not None:
+                kept.append(suffix)
+        cut.append(kept)
+    return cut
 
 
 def timed_scoring(detector, trajectory_lists: list[list]) -> float:
@@ -66,18 +73,7 @@ def profile(project: Path) -> dict:
     params = load_params(project / "params.yaml")
     injectors = list(params.benchmark.injectors)
     streams = {name: [s.trajectories() for s in injector_sets(project, name)] for name in injectors}
-    suffixes = {}
-    for name, lists in streams.items():
-        first = {}  # per seed, its first stream in the stages' order
-        suffixes[name] = [
-            [
-                suffix
-                for trajectory in trajectories
-                if (suffix := _steps_from(trajectory, _first_new_step(first, trajectory)))
-                is not None
-            ]
-            for trajectories in lists
-        ]
+    suffixes = {name: suffixes_after_shared_prefixes(lists) for name, lists in streams.items()}
     steps = sum(t.T for lists in streams.values() for ts in lists for t in ts)
     suffix_steps = sum(t.T for lists in suffixes.values() for ts in lists for t in ts)
     rows = []
