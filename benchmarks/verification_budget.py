@@ -1,0 +1,149 @@
+"""What protocol 4's tier verification accepted, and what accepting only narrow intervals would
+cost (issue 61: verified tiers that fresh episodes show off their level).
+
+    python benchmarks/verification_budget.py [--fresh RUN=fresh.json ...]
+
+Reads the committed impact records of every run (data/impact/*.yaml at the root and in each
+pipeline/<run>/): each tier's verification, its episodes, the half-width of its R̃ interval and
+whether that reached the search's `ci_target`, and each fault's impact episodes (search and
+verification, `tier_search.episodes`). A verification that accepted a tier at a half-width h
+from n episodes would need about n (h / w)² episodes for a half-width w (the interval narrows
+as 1/√n); the table gives the extra episodes for w = 0.03 (the fresh-data goal's tolerance) and
+w = the records' own `ci_target`, against the episodes the impact stages spent. Runs whose
+impact records are byte for byte another's (the suite's LunarLander run and the root) count
+once in the total.
+
+With --fresh, each RUN's verified tiers are cross-tabulated with the verdict of
+`benchmarks/fresh_check.py --json` on fresh episodes, by the goal's test: the level inside the
+fresh 95% interval or within 0.03 of the fresh estimate; a stepped tier (its verdict ends in
+"(step)") passes unless its interval misses its band. Reads files only: no simulator runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+from collections import Counter
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+#: The fresh-data goal's tolerance (issue 61): a tier passes within 0.03 of the fresh estimate.
+GOAL_TOLERANCE = 0.03
+
+
+def runs() -> dict[str, Path]:
+    """Run name -> its impact directory: the root's, then every pipeline's."""
+    found = {"root": ROOT / "data" / "impact"}
+    for directory in sorted((ROOT / "pipeline").glob("*/data/impact")):
+        found[directory.parents[1].name] = directory
+    return found
+
+
+def load(path: Path) -> dict:
+    return yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+
+
+def episodes_for(verification: dict, width: float) -> int:
+    """Episodes the verification would have needed for a half-width `width`, beyond its own."""
+    needed = round(verification["episodes"] * (verification["half_width"] / width) ** 2)
+    return max(0, needed - verification["episodes"])
+
+
+def run_budget(directory: Path) -> dict:
+    """One run's verified tiers and what narrower acceptance would add to its impact episodes."""
+    counts: Counter = Counter()
+    spent = extra_goal = extra_target = 0
+    target = None
+    for path in sorted(directory.glob("*.yaml")):
+        record = load(path)
+        target = record["search"]["ci_target"]
+        for fault in record["faults"].values():
+            spent += fault["tier_search"]["episodes"]["total"]
+            for tier in fault["tiers"].values():
+                verification = tier.get("verification") or {}
+                if not verification.get("verified"):
+                    continue
+                met = bool(verification["ci_target_met"])
+                counts["target met" if met else "target not met"] += 1
+                if not met:
+                    extra_goal += episodes_for(verification, GOAL_TOLERANCE)
+                    extra_target += episodes_for(verification, target)
+    return {"counts": counts, "spent": spent, "extra_goal": extra_goal,
+            "extra_target": extra_target, "ci_target": target}  # fmt: skip
+
+
+def digest(directory: Path) -> str:
+    hashed = hashlib.sha256()
+    for path in sorted(directory.glob("*.yaml")):
+        hashed.update(path.name.encode() + b"\0" + path.read_bytes())
+    return hashed.hexdigest()
+
+
+def passes(row: dict) -> bool:
+    """The fresh-data goal's test of one tier row of fresh_check.py's JSON."""
+    if row["verdict"].endswith("(step)"):
+        return not row["verdict"].startswith("misses")
+    return row["level_in_ci"] or abs(row["difference"]) <= GOAL_TOLERANCE
+
+
+def fresh_table(pairs: list[str], directories: dict[str, Path]) -> list[str]:
+    outcome: Counter = Counter()
+    for pair in pairs:
+        run, _, path = pair.partition("=")
+        if run not in directories or not path:
+            raise SystemExit(
+                f"--fresh {pair!r}: give RUN=PATH, RUN one of {', '.join(directories)}"
+            )
+        for row in json.loads(Path(path).read_text())["tiers"]["rows"]:
+            if row["severity"] == "unreachable":
+                continue
+            record = load(directories[run] / f"{row['fault']}.yaml")
+            verification = (
+                record["faults"][row["fault"]]["tiers"][row["tier"]].get("verification") or {}
+            )
+            if verification.get("verified"):
+                met = "target met" if verification["ci_target_met"] else "target not met"
+                outcome[met, passes(row)] += 1
+    lines = ["", f"Verified tiers on fresh episodes ({len(pairs)} runs):", "",
+             "| verification | tiers | fail the goal's test |", "|---|---:|---:|"]  # fmt: skip
+    for met in ("target met", "target not met"):
+        total = outcome[met, True] + outcome[met, False]
+        lines.append(f"| {met} | {total} | {outcome[met, False]} |")
+    return lines
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--fresh", nargs="*", default=[], metavar="RUN=PATH")
+    args = parser.parse_args()
+    directories = runs()
+    lines = ["| run | verified: target met | not met | impact episodes | +episodes for ±0.03 "
+             "| +episodes for the ci_target |", "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    seen: set[str] = set()
+    total = Counter()
+    for run, directory in directories.items():
+        budget = run_budget(directory)
+        counts = budget["counts"]
+        lines.append(f"| {run} | {counts['target met']} | {counts['target not met']} | "
+                     f"{budget['spent']:,} | {budget['extra_goal']:,} | "
+                     f"{budget['extra_target']:,} (±{budget['ci_target']:g}) |")  # fmt: skip
+        if (key := digest(directory)) not in seen:
+            seen.add(key)
+            total.update({**counts, "spent": budget["spent"], "goal": budget["extra_goal"],
+                          "target": budget["extra_target"]})  # fmt: skip
+    spent = total["spent"]
+    lines.append(
+        f"| **{len(seen)} distinct** | {total['target met']} | {total['target not met']} | "
+        f"{spent:,} | {total['goal']:,} ({(spent + total['goal']) / spent:.2f}×) | "
+        f"{total['target']:,} ({(spent + total['target']) / spent:.2f}×) |"
+    )
+    if args.fresh:
+        lines += fresh_table(args.fresh, directories)
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

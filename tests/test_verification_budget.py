@@ -1,0 +1,74 @@
+"""benchmarks/verification_budget.py: the episodes a narrower verification would need, the
+goal's test of a fresh tier row, and its table over the committed impact records."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "verification_budget.py"
+
+
+@pytest.fixture(scope="module")
+def budget():
+    spec = importlib.util.spec_from_file_location("verification_budget", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_a_half_width_halved_takes_four_times_the_episodes(budget):
+    assert budget.episodes_for({"episodes": 50, "half_width": 0.06}, 0.03) == 150
+    assert budget.episodes_for({"episodes": 100, "half_width": 0.02}, 0.03) == 0
+
+
+@pytest.mark.parametrize(
+    ("verdict", "level_in_ci", "difference", "passes"),
+    [
+        ("undecided at 150 episodes", False, -0.031, False),
+        ("undecided at 150 episodes", False, 0.029, True),
+        ("undecided at 150 episodes", True, -0.05, True),
+        ("undecided at 150 episodes (step)", False, -0.14, True),  # its band, not its level
+        ("misses by -0.200 (step)", False, -0.2, False),
+    ],
+)
+def test_the_goals_test_of_a_fresh_row(budget, verdict, level_in_ci, difference, passes):
+    row = {"verdict": verdict, "level_in_ci": level_in_ci, "difference": difference}
+    assert budget.passes(row) is passes
+
+
+def test_the_table_has_a_row_per_run_and_counts_shared_records_once(budget, tmp_path):
+    runs = budget.runs()
+    # One fresh row per verified tier of the root's first fault: each passes.
+    fault_path = sorted(runs["root"].glob("*.yaml"))[0]
+    fault = fault_path.stem
+    tiers = budget.load(fault_path)["faults"][fault]["tiers"]
+    verified = [
+        name for name, tier in tiers.items() if (tier.get("verification") or {}).get("verified")
+    ]
+    rows = [
+        {"fault": fault, "tier": name, "severity": tiers[name]["severity"],
+         "verdict": "within 0.02", "level_in_ci": True, "difference": 0.0}
+        for name in verified
+    ]  # fmt: skip
+    fresh = tmp_path / "fresh.json"
+    fresh.write_text(json.dumps({"tiers": {"rows": rows}}))
+    out = subprocess.run(
+        [sys.executable, str(SCRIPT), "--fresh", f"root={fresh}"],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    table = [line for line in out.splitlines() if line.startswith("| ")]
+    assert [line.split(" | ")[0][2:] for line in table[1 : len(runs) + 1]] == list(runs)
+    distinct = len({budget.digest(directory) for directory in runs.values()})
+    assert f"**{distinct} distinct**" in out
+    assert distinct < len(runs)  # the suite's LunarLander run has the root's records
+    met = sum(tiers[n]["verification"]["ci_target_met"] for n in verified)
+    assert out.splitlines()[-2:] == [
+        f"| target met | {met} | 0 |",
+        f"| target not met | {len(verified) - met} | 0 |",
+    ]
