@@ -4,13 +4,12 @@ is all in its fixture's setup and teardown."""
 
 from __future__ import annotations
 
-import importlib.util
 import os
 import subprocess
 import sys
 from pathlib import Path
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "test_durations.py"
+from benchmark_scripts import load_benchmark
 
 SLOW = """
 import time
@@ -38,13 +37,6 @@ def test_fails():
 """
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location("test_durations_script", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_report_of_a_real_junit_file(tmp_path: Path, capsys):
     project = tmp_path / "project"
     (project / "tests" / "sub").mkdir(parents=True)
@@ -62,7 +54,7 @@ def test_report_of_a_real_junit_file(tmp_path: Path, capsys):
     )  # fmt: skip
     assert done.returncode == 1, done.stdout  # the failing test is reported, not dropped
 
-    script = _load()
+    script = load_benchmark("test_durations")
     rows = script.durations(junit)
     by_test = {(module, name): seconds for module, name, seconds in rows}
     assert set(by_test) == {

@@ -5,7 +5,6 @@ writes nothing there. One fault of its two (`--faults`): the tier check rolls wh
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import subprocess
@@ -14,11 +13,12 @@ from pathlib import Path
 
 import pytest
 import yaml
+from benchmark_scripts import BENCHMARKS, load_benchmark
 from tiny_pipeline import DETECTORS, file_stamps
 
 pytestmark = pytest.mark.slow
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "fresh_check.py"
+SCRIPT = BENCHMARKS / "fresh_check.py"
 FAULTS = ["stuck_actuator"]
 STREAMS, EPISODES = 7, 3
 
@@ -109,10 +109,7 @@ def test_tables_count_what_was_asked(pipeline, tmp_path):
 @pytest.fixture(scope="module")
 def script():
     """The script as a module, for what its process would only wrap (`sys.exit(main())`)."""
-    spec = importlib.util.spec_from_file_location("fresh_check", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("fresh_check")
 
 
 @pytest.mark.parametrize(

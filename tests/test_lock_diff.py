@@ -4,22 +4,16 @@ Its judgement of results files, on hand-made documents."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 import yaml
-
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "lock_diff.py"
+from benchmark_scripts import load_benchmark
 
 
 @pytest.fixture(scope="module")
 def lock_diff():
-    spec = importlib.util.spec_from_file_location("lock_diff", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("lock_diff")
 
 
 RESULTS = {

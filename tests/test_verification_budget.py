@@ -3,23 +3,19 @@ goal's test of a fresh tier row, and its table over the committed impact records
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from benchmark_scripts import BENCHMARKS, load_benchmark
 
-SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "verification_budget.py"
+SCRIPT = BENCHMARKS / "verification_budget.py"
 
 
 @pytest.fixture(scope="module")
 def budget():
-    spec = importlib.util.spec_from_file_location("verification_budget", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("verification_budget")
 
 
 def test_a_half_width_halved_takes_four_times_the_episodes(budget):
