@@ -1,7 +1,7 @@
 """What protocol 4's tier verification accepted, and what accepting only narrow intervals would
 cost (issue 61: verified tiers that fresh episodes show off their level).
 
-    python benchmarks/verification_budget.py [--fresh RUN=fresh.json ...]
+    python benchmarks/verification_budget.py [--fresh [RUN=fresh.json ...]]
 
 Reads the committed impact records of every run (data/impact/*.yaml at the root and in each
 pipeline/<run>/): each tier's verification, its episodes, the half-width of its R̃ interval and
@@ -14,7 +14,8 @@ impact records are byte for byte another's (the suite's LunarLander run and the 
 once in the total.
 
 With --fresh, each RUN's verified tiers are cross-tabulated with the verdict of
-`benchmarks/fresh_check.py --json` on fresh episodes, by the goal's test: the level inside the
+`benchmarks/fresh_check.py --json` on fresh episodes (with no RUN=PATH, the checks recorded in
+benchmarks/fresh/, RUN.json each), by the goal's test: the level inside the
 fresh 95% interval or within 0.03 of the fresh estimate; a stepped tier (its verdict ends in
 "(step)") passes unless its interval misses its band. Reads files only: no simulator runs.
 """
@@ -30,6 +31,8 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
+#: The recorded fresh checks: `fresh_check.py --json` of each run checked, named after it.
+FRESH = ROOT / "benchmarks" / "fresh"
 #: The fresh-data goal's tolerance (issue 61): a tier passes within 0.03 of the fresh estimate.
 GOAL_TOLERANCE = 0.03
 
@@ -117,8 +120,10 @@ def fresh_table(pairs: list[str], directories: dict[str, Path]) -> list[str]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--fresh", nargs="*", default=[], metavar="RUN=PATH")
+    parser.add_argument("--fresh", nargs="*", metavar="RUN=PATH")
     args = parser.parse_args()
+    if args.fresh == []:
+        args.fresh = [f"{path.stem}={path}" for path in sorted(FRESH.glob("*.json"))]
     directories = runs()
     lines = ["| run | verified: target met | not met | impact episodes | +episodes for ±0.03 "
              "| +episodes for the ci_target |", "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
@@ -140,7 +145,7 @@ def main() -> None:
         f"{spent:,} | {total['goal']:,} ({(spent + total['goal']) / spent:.2f}×) | "
         f"{total['target']:,} ({(spent + total['target']) / spent:.2f}×) |"
     )
-    if args.fresh:
+    if args.fresh is not None:
         lines += fresh_table(args.fresh, directories)
     print("\n".join(lines))
 

@@ -68,3 +68,11 @@ def test_the_table_has_a_row_per_run_and_counts_shared_records_once(budget, tmp_
         f"| target met | {met} | 0 |",
         f"| target not met | {len(verified) - met} | 0 |",
     ]
+
+
+def test_without_paths_it_reads_the_recorded_checks():
+    recorded = sorted(BENCHMARKS.glob("fresh/*.json"))
+    out = subprocess.run(
+        [sys.executable, str(SCRIPT), "--fresh"], capture_output=True, text=True, check=True
+    ).stdout
+    assert recorded and f"Verified tiers on fresh episodes ({len(recorded)} runs):" in out
