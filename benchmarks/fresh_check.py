@@ -3,6 +3,7 @@ never used?
 
     python benchmarks/fresh_check.py --pipeline P [--streams N] [--episodes M]
         [--seed-offset S] [--detectors D ...] [--faults F ...] [--json OUT] [--workers W]
+        [--batch-streams B]
 
 P is a built pipeline's directory: the root `.` (LunarLander) or `pipeline/<env>`. The check reads
 what the pipeline committed or built there and nothing else: its params.yaml, the policy
@@ -62,6 +63,13 @@ more episodes there), any other `*_SEED_OFFSET` constant of `oodrl.config` (a bl
 evaluation policy.train.final_eval_seed + i.
 
 `--streams 0` or `--episodes 0` skips that half. `--detectors` and `--faults` pick subsets.
+`--batch-streams B` scores the fresh clean streams B at a time (default: all in one call, as a
+scoring stage scores a set): a detector that scores a batch at once holds the batch's work in
+memory, and `action_consistency` runs the policy on nine copies of every step (about 73 MB a
+500-step LunarLanderContinuous stream, so 400 streams would need about 29 GB). The contract of
+a detector lets a stream's scores differ between batches only within `check_score_is_pure`'s
+tolerance.
+
 Costs on LunarLander (2 cores): the 400 clean streams of 500 steps and their scoring take a few
 minutes; the tiers take (2 + the number of reachable tiers) × M whole episodes of up to 1000 steps.
 """
@@ -302,7 +310,23 @@ def tier_verdict(low: float, high: float, value: float, level: float, band, n: i
 
 
 # -- (a) false alarms ------------------------------------------------------------------------------
-def false_alarms(params, detectors, thresholds, alpha, seeds: range, workers: int) -> list[dict]:
+def scores_in_batches(detector, name: str, streams, batch: int) -> np.ndarray:
+    """The detector's scores (N, T) of the fresh clean streams, `batch` streams a call (0: all
+    in one call)."""
+    from oodrl.protocol.scoring import score_set
+
+    step = batch or len(streams)
+    parts = [
+        score_set(detector, name, streams.subset(range(i, min(i + step, len(streams)))),
+                  "the fresh clean streams")
+        for i in range(0, len(streams), step)
+    ]  # fmt: skip
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+def false_alarms(
+    params, detectors, thresholds, alpha, seeds: range, workers: int, batch: int = 0
+) -> list[dict]:
     """Per detector and per-stream rule, the fresh clean streams' false-alarm rate at its
     committed threshold."""
     from oodrl.envs import ENVIRONMENTS
@@ -313,7 +337,6 @@ def false_alarms(params, detectors, thresholds, alpha, seeds: range, workers: in
     from oodrl.metrics.tiers import _time_aware_fit  # the tier_metrics stage's own fit
     from oodrl.metrics.time_aware import rule_scores
     from oodrl.policies.load import load_policy
-    from oodrl.protocol.scoring import score_set
 
     T = params.env.T  # noqa: N806
     adapter = ENVIRONMENTS.get(params.env.id)()
@@ -327,7 +350,7 @@ def false_alarms(params, detectors, thresholds, alpha, seeds: range, workers: in
     for name in detectors:
         started = time.perf_counter()
         detector = load_detector(fitted_detector_path(name), stage=detector_stage(name, "fit"))
-        scores = score_set(detector, name, clean, "the fresh clean streams")
+        scores = scores_in_batches(detector, name, clean, batch)
         latency = params.detector(name).latency
         standardiser = None
         if thresholds[name]["time_aware"] is not None:
@@ -534,9 +557,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from oodrl.config import load_params
     from oodrl.errors import ConfigError
 
-    if args.streams < 0 or args.episodes < 0 or args.episodes == 1:
+    if args.streams < 0 or args.episodes < 0 or args.episodes == 1 or args.batch_streams < 0:
         raise ConfigError(
-            f"--streams must be >= 0 and --episodes 0 or >= 2; got {args.streams}, {args.episodes}."
+            f"--streams and --batch-streams must be >= 0 and --episodes 0 or >= 2; got "
+            f"{args.streams}, {args.batch_streams} and {args.episodes}."
         )
     pipeline = Path(args.pipeline)
     if not (pipeline / "params.yaml").is_file():
@@ -585,7 +609,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     }  # fmt: skip
     if args.streams:
         result["false_alarms"] = false_alarms(
-            params, detectors, thresholds, alpha, fresh[0][1], workers
+            params, detectors, thresholds, alpha, fresh[0][1], workers, args.batch_streams
         )
     if args.episodes:
         summary, rows = tier_check(params, faults, tiers, horizon, base, args.episodes, workers)
@@ -608,6 +632,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--faults", nargs="+", help="a subset of benchmark.injectors")
     parser.add_argument("--json", help="also write the tables' rows as JSON here")
     parser.add_argument("--workers", type=int, default=0, help="0: executor.workers of params")
+    parser.add_argument("--batch-streams", type=int, default=0,
+                        help="clean streams scored per call (0: all in one)")  # fmt: skip
     args = parser.parse_args(argv)
     from oodrl.errors import ConfigError, OodrlError, RegistryError
 

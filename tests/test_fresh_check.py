@@ -136,6 +136,25 @@ def test_an_offset_onto_protocol_seeds_is_refused(
     assert overlapped in lines[0]
 
 
+def test_streams_scored_in_batches_score_as_in_one_call(pipeline, script, monkeypatch):
+    """--batch-streams: a few streams a call give each stream the scores of one call."""
+    import numpy as np
+
+    from oodrl.io.layout import detector_stage
+    from oodrl.io.store import load_detector, read_trajectories
+
+    monkeypatch.chdir(pipeline)
+    streams = read_trajectories(Path(script.ID_STORE), stage="collect_id")
+    assert len(streams) > 3  # batches of 3: more than one call
+    for name in DETECTORS:
+        detector = load_detector(
+            script.fitted_detector_path(name), stage=detector_stage(name, "fit")
+        )
+        whole = script.scores_in_batches(detector, name, streams, 0)
+        assert whole.shape[0] == len(streams)
+        np.testing.assert_array_equal(script.scores_in_batches(detector, name, streams, 3), whole)
+
+
 def test_a_missing_output_is_one_line_naming_its_restore(pipeline, tmp_path):
     bare = tmp_path / "bare"
     (bare / "models").mkdir(parents=True)
