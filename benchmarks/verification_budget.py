@@ -15,9 +15,9 @@ once in the total.
 
 With --fresh, each RUN's verified tiers are cross-tabulated with the verdict of
 `benchmarks/fresh_check.py --json` on fresh episodes (with no RUN=PATH, the checks recorded in
-benchmarks/fresh/, RUN.json each), by the goal's test: the level inside the
-fresh 95% interval or within 0.03 of the fresh estimate; a stepped tier (its verdict ends in
-"(step)") passes unless its interval misses its band. Reads files only: no simulator runs.
+benchmarks/fresh/, RUN.json each), by the goal's test: the level inside the fresh 95% interval
+or within 0.03 of the fresh estimate; a stepped tier (its verdict ends in "(step)") passes
+unless its interval misses its band. Reads files only: no simulator runs.
 """
 
 from __future__ import annotations
@@ -92,15 +92,12 @@ def passes(row: dict) -> bool:
     return row["level_in_ci"] or abs(row["difference"]) <= GOAL_TOLERANCE
 
 
-def fresh_table(pairs: list[str], directories: dict[str, Path]) -> list[str]:
+def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) -> list[str]:
+    """Verified tiers by whether their verification met its target, and how many of each fail
+    the goal's test on fresh episodes (`checks`: run name and fresh_check.py JSON)."""
     outcome: Counter = Counter()
-    for pair in pairs:
-        run, _, path = pair.partition("=")
-        if run not in directories or not path:
-            raise SystemExit(
-                f"--fresh {pair!r}: give RUN=PATH, RUN one of {', '.join(directories)}"
-            )
-        for row in json.loads(Path(path).read_text())["tiers"]["rows"]:
+    for run, path in checks:
+        for row in json.loads(path.read_text())["tiers"]["rows"]:
             if row["severity"] == "unreachable":
                 continue
             record = load(directories[run] / f"{row['fault']}.yaml")
@@ -110,7 +107,7 @@ def fresh_table(pairs: list[str], directories: dict[str, Path]) -> list[str]:
             if verification.get("verified"):
                 met = "target met" if verification["ci_target_met"] else "target not met"
                 outcome[met, passes(row)] += 1
-    lines = ["", f"Verified tiers on fresh episodes ({len(pairs)} runs):", "",
+    lines = ["", f"Verified tiers on fresh episodes ({len(checks)} runs):", "",
              "| verification | tiers | fail the goal's test |", "|---|---:|---:|"]  # fmt: skip
     for met in ("target met", "target not met"):
         total = outcome[met, True] + outcome[met, False]
@@ -122,9 +119,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--fresh", nargs="*", metavar="RUN=PATH")
     args = parser.parse_args()
-    if args.fresh == []:
-        args.fresh = [f"{path.stem}={path}" for path in sorted(FRESH.glob("*.json"))]
     directories = runs()
+    checks = None
+    if args.fresh == []:
+        checks = [(path.stem, path) for path in sorted(FRESH.glob("*.json"))]
+    elif args.fresh:
+        checks = [(run, Path(path)) for run, _, path in (p.partition("=") for p in args.fresh)]
+    for run, path in checks or []:
+        if run not in directories or not path.is_file():
+            parser.error(f"--fresh {run}={path}: RUN must be one of {', '.join(directories)} "
+                         "and PATH a fresh_check.py JSON file")  # fmt: skip
     lines = ["| run | verified: target met | not met | impact episodes | +episodes for ±0.03 "
              "| +episodes for the ci_target |", "|---|---:|---:|---:|---:|---:|"]  # fmt: skip
     seen: set[str] = set()
@@ -145,8 +149,8 @@ def main() -> None:
         f"{spent:,} | {total['goal']:,} ({(spent + total['goal']) / spent:.2f}×) | "
         f"{total['target']:,} ({(spent + total['target']) / spent:.2f}×) |"
     )
-    if args.fresh is not None:
-        lines += fresh_table(args.fresh, directories)
+    if checks is not None:
+        lines += fresh_table(checks, directories)
     print("\n".join(lines))
 
 

@@ -76,3 +76,18 @@ def test_without_paths_it_reads_the_recorded_checks():
         [sys.executable, str(SCRIPT), "--fresh"], capture_output=True, text=True, check=True
     ).stdout
     assert recorded and f"Verified tiers on fresh episodes ({len(recorded)} runs):" in out
+
+
+def test_an_unknown_run_is_a_usage_error():
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), "--fresh", "nowhere=missing.json"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert (
+        done.stderr.strip()
+        .splitlines()[-1]
+        .startswith(
+            "verification_budget.py: error: --fresh nowhere=missing.json: RUN must be one of root"
+        )
+    )
