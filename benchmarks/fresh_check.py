@@ -321,7 +321,7 @@ def scores_in_batches(detector, name: str, streams, batch: int) -> np.ndarray:
                   "the fresh clean streams")
         for i in range(0, len(streams), step)
     ]  # fmt: skip
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+    return np.concatenate(parts)
 
 
 def false_alarms(
