@@ -28,8 +28,6 @@ import json
 from collections import Counter
 from pathlib import Path
 
-import yaml
-
 ROOT = Path(__file__).resolve().parents[1]
 #: The recorded fresh checks: `fresh_check.py --json` of each run checked, named after it.
 FRESH = ROOT / "benchmarks" / "fresh"
@@ -46,7 +44,9 @@ def runs() -> dict[str, Path]:
 
 
 def load(path: Path) -> dict:
-    return yaml.load(path.read_text(), Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
+    from oodrl.io import yamlio  # the project's loader (libyaml where installed)
+
+    return yamlio.load(path.read_text())
 
 
 def episodes_for(verification: dict, width: float) -> int:
