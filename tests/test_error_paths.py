@@ -20,7 +20,7 @@ from test_cli import _score_params
 from typer.testing import CliRunner
 
 import oodrl
-from oodrl.api.evaluation import _given_arguments, as_detector, committed_tiers
+from oodrl.api.evaluation import _given_arguments, as_detector, committed_impacts
 from oodrl.api.project import Pipeline
 from oodrl.cli import app
 from oodrl.errors import ConfigError, StoreError
@@ -80,12 +80,15 @@ def test_a_leaderboard_that_is_not_json_is_refused_with_the_parsers_reason(tmp_p
     )
 
 
-# -- evaluate: the committed tiers and the library model's arguments -------------------------
+# -- evaluate: the committed impact records and the library model's arguments ---------------
 def _impact_document(fault: str, severity: float) -> dict:
-    return {"faults": {fault: {"tiers": {"mild": {"severity": severity}}}}}
+    """An impact stage's document, as `oodrl impact` writes it (its keys the reader keeps)."""
+    curve = [{"severity": severity, "monotone": 0.5}]
+    fault_record = {"tiers": {"mild": {"severity": severity}}, "curve": curve, "probes": []}
+    return {"clean_return": 500.0, "random_return": 20.0, "faults": {fault: fault_record}}
 
 
-def test_a_fault_missing_from_tier_results_takes_its_tiers_from_the_impact_stage(tmp_path):
+def test_a_fault_missing_from_tier_results_takes_its_record_from_the_impact_stage(tmp_path):
     # A tier_results.yaml of no `impact` section (an older one): only data/impact/ holds tiers.
     (tmp_path / "reports").mkdir()
     (tmp_path / "reports" / "tier_results.yaml").write_text("records: []\n")
@@ -94,8 +97,17 @@ def test_a_fault_missing_from_tier_results_takes_its_tiers_from_the_impact_stage
         yaml.safe_dump(_impact_document("stuck_actuator", 0.3))
     )
     pipeline = Pipeline(tmp_path, "CartPole-v1", "0")
-    found = committed_tiers(pipeline, ["stuck_actuator", "gaussian_state_noise"])
-    assert found == {"stuck_actuator": {"mild": {"severity": 0.3}}}
+    found = committed_impacts(pipeline, ["stuck_actuator", "gaussian_state_noise"])
+    # tier_results.yaml's `impact` record of the fault: the returns, the tiers and the curve.
+    written = _impact_document("stuck_actuator", 0.3)
+    assert found == {
+        "stuck_actuator": {
+            "clean_return": 500.0,
+            "random_return": 20.0,
+            "tiers": {"mild": {"severity": 0.3}},
+            "curve": written["faults"]["stuck_actuator"]["curve"],
+        }
+    }
 
 
 def test_an_impact_section_naming_an_anchor_outside_it_is_read_from_the_whole_file(tmp_path):
@@ -105,13 +117,13 @@ def test_an_impact_section_naming_an_anchor_outside_it_is_read_from_the_whole_fi
         "defaults:\n  tiers: &mild\n    mild: {severity: 0.5}\n"
         "impact:\n  stuck_actuator:\n    tiers: *mild\n"
     )
-    found = committed_tiers(Pipeline(tmp_path, "CartPole-v1", "0"), ["stuck_actuator"])
-    assert found == {"stuck_actuator": {"mild": {"severity": 0.5}}}
+    found = committed_impacts(Pipeline(tmp_path, "CartPole-v1", "0"), ["stuck_actuator"])
+    assert found == {"stuck_actuator": {"tiers": {"mild": {"severity": 0.5}}}}
 
 
 def test_a_pipeline_without_committed_tiers_is_a_store_error_naming_both_sources(tmp_path):
     with pytest.raises(StoreError) as raised:
-        committed_tiers(Pipeline(tmp_path, "CartPole-v1", "0"), ["stuck_actuator"])
+        committed_impacts(Pipeline(tmp_path, "CartPole-v1", "0"), ["stuck_actuator"])
     message = str(raised.value)
     assert message.startswith(f"{tmp_path}: no committed impact tiers (reports/tier_results.yaml")
     assert "`dvc repro tier_metrics`" in message and "\n" not in message

@@ -7,8 +7,10 @@ detector's fit and calibration split) and the held-out calibration, audit and tw
 `oodrl.stages.impact.collect_tiers` each fault's tier streams at the tier severities the
 pipeline committed; the detector is fitted and calibrated as `oodrl.stages.fit` does and
 pickled; `oodrl.stages.score` scores every set with a freshly loaded copy; and
-`oodrl.metrics.tiers` turns the scores into tier_results.yaml's records. So at the pipeline's
-own params (`size="full"`) a built-in detector's numbers are the pipeline's, bit for bit
+`oodrl.metrics.tiers.compute_tier_results`, the tier metrics' own entry point, turns the scores
+into tier_results.yaml's records, with the evaluated detector as the benchmark's only one and
+the committed impact records (curve and returns, the chosen tiers) as its faults'. So at the
+pipeline's own params (`size="full"`) a built-in detector's numbers are the pipeline's, bit for bit
 (tests/api/test_evaluate.py checks it on a tiny pipeline).
 """
 
@@ -151,7 +153,8 @@ def evaluate(
     pipeline = pipeline_at(resolve_directory(env, "env"))
     params = sized_params(pipeline, size, seed)
     chosen = _tiers(tiers)
-    committed = committed_tiers(pipeline, params.benchmark.injectors)
+    impacts = committed_impacts(pipeline, params.benchmark.injectors)
+    committed = {fault: impact["tiers"] for fault, impact in impacts.items()}
     plan = _plan(committed, _faults(faults, params.benchmark.injectors), chosen)
     if not plan:
         raise ConfigError(
@@ -161,7 +164,7 @@ def evaluate(
         )
     params = _with_injectors(params, list(plan))
     with tempfile.TemporaryDirectory(prefix="oodrl-evaluate-") as tmp:
-        records, cost = _run(params, pipeline, detector, label, plan, Path(tmp))
+        records, cost = _run(params, pipeline, detector, label, plan, impacts, Path(tmp))
     rows = list(tier_rows(records, pipeline.env, pipeline.policy))
     rows += _cost_rows(pipeline, label, cost)
     frame = pd.DataFrame.from_records(rows, columns=list(COLUMNS))
@@ -312,21 +315,28 @@ def _faults(faults: Sequence[str] | None, known: Sequence[str]) -> list[str]:
 
 
 # -- the committed tiers ---------------------------------------------------------------------
-def committed_tiers(pipeline: Pipeline, faults: Sequence[str]) -> dict[str, dict[str, Any]]:
-    """fault -> its tiers as the pipeline committed them (tier -> {severity, verification,
-    ...}): the `impact` section of reports/tier_results.yaml, git-tracked; for a fault it
-    lacks, data/impact/<fault>.yaml (the impact stage's output, where present)."""
+def committed_impacts(pipeline: Pipeline, faults: Sequence[str]) -> dict[str, dict[str, Any]]:
+    """fault -> its impact record as the pipeline committed it (`clean_return`,
+    `random_return`, `curve`, `tiers`: tier -> {severity, verification, ...}, and
+    `severity_steps` where the fault has them): the `impact` section of
+    reports/tier_results.yaml, git-tracked; for a fault it lacks, data/impact/<fault>.yaml (the
+    impact stage's output, where present)."""
     from oodrl.protocol.tiers import IMPACT_DIR, impact_path, read_impact
 
     section = _impact_section(pipeline.directory / "reports" / "tier_results.yaml")
     found: dict[str, dict[str, Any]] = {}
     for fault in faults:
         if fault in section:
-            found[fault] = section[fault]["tiers"]
+            found[fault] = section[fault]
             continue
         path = impact_path(pipeline.directory / IMPACT_DIR, fault)
         if path.is_file():
-            found[fault] = read_impact(path, fault)["fault"]["tiers"]
+            document = read_impact(path, fault)
+            found[fault] = {
+                "clean_return": document["clean_return"],
+                "random_return": document["random_return"],
+                **{k: v for k, v in document["fault"].items() if k in _IMPACT_KEYS},
+            }
     if not found:
         raise StoreError(
             f"{pipeline.directory}: no committed impact tiers (reports/tier_results.yaml or "
@@ -334,6 +344,10 @@ def committed_tiers(pipeline: Pipeline, faults: Sequence[str]) -> dict[str, dict
             "`dvc repro tier_metrics` in the pipeline builds them."
         )
     return found
+
+
+#: A fault's keys in tier_results.yaml's `impact` section besides the returns.
+_IMPACT_KEYS = ("tiers", "curve", "severity_steps")
 
 
 def _impact_section(path: Path) -> dict[str, Any]:
@@ -388,11 +402,13 @@ def _plan(
 
 # -- the pipeline's stages, in a temporary directory -----------------------------------------
 class _WithDetector:
-    """Params whose `detector(name)` is the evaluated object for its name (the tier metrics
-    read the detector's latency from it); everything else is the params'."""
+    """Params whose benchmark has the evaluated object as its only detector, and whose
+    `detector(name)` is that object for its name (the tier metrics read the detector's latency
+    from it); everything else is the params'."""
 
     def __init__(self, params: Params, name: str, detector: BaseDetector) -> None:
         self._params, self._name, self._detector = params, name, detector
+        self.benchmark = params.benchmark.model_copy(update={"detectors": [name]})
 
     def __getattr__(self, attribute: str) -> Any:
         return getattr(self._params, attribute)
@@ -407,6 +423,7 @@ def _run(
     detector: BaseDetector,
     label: str,
     plan: Mapping[str, Mapping[str, Any]],
+    impacts: Mapping[str, Mapping[str, Any]],
     tmp: Path,
 ) -> tuple[list[dict], dict[str, float]]:
     """Collect, fit, score and measure as the pipeline's stages do; the tier records and
@@ -415,7 +432,7 @@ def _run(
     from oodrl.io.fileio import atomic_write_text
     from oodrl.io.store import read_trajectories, save_detector
     from oodrl.metrics.cost import step_latency_us, timed_streams
-    from oodrl.metrics.tiers import _detector_records
+    from oodrl.metrics.tiers import compute_tier_results
     from oodrl.protocol.streams import HELDOUT_SETS
     from oodrl.protocol.tiers import IMPACT_DIR, impact_path
     from oodrl.stages.collect import collect_heldout, collect_id
@@ -438,7 +455,7 @@ def _run(
             collect_heldout(params, which, policy, path)
         for fault, tiers in plan.items():
             impact = impact_path(tmp / IMPACT_DIR, fault)
-            atomic_write_text(impact, yamlio.dump({"faults": {fault: {"tiers": dict(tiers)}}}))
+            atomic_write_text(impact, yamlio.dump(_impact_document(fault, impacts[fault], tiers)))
             collect_tiers(params, fault, policy, impact, id_path, tier_paths[fault])
         id_set = read_trajectories(id_path, stage="collect_id")
         split = id_set.attrs["split"]
@@ -450,12 +467,24 @@ def _run(
         score_clean_sets(key, model, scores, None, heldout, id_path=id_path)
         for fault in tier_paths:
             score_injector_sets(key, fault, model, scores, None, None, data / "tiers")
-        records = _detector_records(
-            _WithDetector(params, key, detector), scores, tmp / IMPACT_DIR, key
-        )
+        with_detector = _WithDetector(params, key, detector)
+        records = compute_tier_results(with_detector, scores, tmp / IMPACT_DIR)["records"]
         twins = read_trajectories(heldout["twins"], stage="collect_twins").trajectories()
         cost = {"fit_s": fit_s, **step_latency_us(detector, timed_streams(twins))}
     return [{**r, "detector": label} for r in records], cost
+
+
+def _impact_document(
+    fault: str, impact: Mapping[str, Any], tiers: Mapping[str, Any]
+) -> dict[str, Any]:
+    """The impact document the tier stages read for `fault`: its committed record with only the
+    chosen `tiers`, so that only their streams are collected and scored."""
+    record = {k: impact[k] for k in _IMPACT_KEYS if k in impact}
+    return {
+        "clean_return": impact["clean_return"],
+        "random_return": impact["random_return"],
+        "faults": {fault: {**record, "tiers": dict(tiers)}},
+    }
 
 
 def _cost_rows(pipeline: Pipeline, label: str, cost: Mapping[str, float]) -> list[dict]:
