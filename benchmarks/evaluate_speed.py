@@ -12,8 +12,9 @@ pays them), from the project root:
 3. `oodrl.evaluate(<class>(), env="cartpole", size=...)` at the mild tier, and where its mean
    detection rate over the verified cells ranks among the leaderboard's CartPole detectors;
 4. with --check-full NAME: `oodrl.evaluate` of that built-in detector at size "full" (the
-   pipeline's params), its rows compared with the committed reports/tier_results.yaml
-   (every value, CI and count equal, or the script exits 1).
+   pipeline's params), its rows compared with the committed tier results
+   (reports/tier_results.json, or a protocol-4 pipeline's reports/tier_results.yaml): every
+   value, CI and count equal, or the script exits 1.
 """
 
 from __future__ import annotations
@@ -100,7 +101,7 @@ def main() -> None:
     if args.check_full:
         seconds, rows = timed(CHECK_FULL.format(name=args.check_full))
         print(f"evaluate({args.check_full}, size='full'): {seconds:.1f} s; {rows} rows equal "
-              "the committed pipeline/cartpole/reports/tier_results.yaml")  # fmt: skip
+              "pipeline/cartpole's committed tier results")  # fmt: skip
 
 
 if __name__ == "__main__":

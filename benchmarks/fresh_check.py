@@ -9,17 +9,18 @@ P is a built pipeline's directory: the root `.` (LunarLander) or `pipeline/<env>
 what the pipeline committed or built there and nothing else: its params.yaml, the policy
 (`models/policy.pt`), each detector's fitted model (the output of the fit stage in
 `detectors/<detector>/dvc.yaml`, `models/detectors/<detector>.pkl`), each detector's per-stream
-alarm threshold (`reports/tier_results.yaml`, the threshold of its operating point), each
-fault's tier severities (`data/impact/<fault>.yaml`) and the clean ID set (`data/id.zarr`: the
-reference statistics of the live observation faults, as the impact stage uses them). A missing
-one is one line naming the DVC command that restores it (exit 1).
+alarm threshold (its operating point's, in `reports/tier_results.json` or a protocol-4
+pipeline's `reports/tier_results.yaml`), each fault's tier severities
+(`data/impact/<fault>.yaml`) and the clean ID set (`data/id.zarr`: the reference statistics of
+the live observation faults, as the impact stage uses them). A missing one is one line naming
+the DVC command that restores it (exit 1).
 
 It rolls FRESH seeds and prints two markdown tables (`--json OUT` writes them too):
 
 (a) False alarms: per detector, the share of N fresh clean streams of `env.T` steps (the
     pipeline's stream length) that raise any alarm at the committed per-stream threshold, with
     its exact Clopper-Pearson 95% interval (`oodrl.metrics.operating.achieved_false_alarm_rate`),
-    beside α (`tiers.alpha`, as tier_results.yaml states it). An alarm is `score >= threshold`;
+    beside α (`tiers.alpha`, as the tier results state it). An alarm is `score >= threshold`;
     an alarm on the score of step t is raised at t + latency (the detector's look-ahead), and a
     raise at or after T is beyond the stream, so no alarm (`oodrl.metrics.operating.first_raise`,
     as `oodrl.metrics.tiers` counts detections). Each stream with an alarm counts once.
@@ -93,7 +94,6 @@ DEFAULT_SEED_OFFSET = 3_000_000
 BLOCK = 100_000
 #: The tolerance of the tier verdict (issue 39: "within 0.02 of its level").
 TOLERANCE = 0.02
-TIER_RESULTS = "reports/tier_results.yaml"
 ID_STORE = "data/id.zarr"
 SCORES_DIR = "scores"
 POLICY = "models/policy.pt"
@@ -223,15 +223,16 @@ def committed_thresholds(
     detectors: list[str],
 ) -> tuple[dict[str, dict[str, float | None]], float, dict]:
     """Each detector's per-stream threshold under each rule (None: the time-aware rule has no
-    operating point for it) and α, from reports/tier_results.yaml."""
+    operating point for it) and α, from the tier results (`load_tier_results`)."""
     from oodrl.api.results import rule_points
     from oodrl.errors import StoreError
-    from oodrl.io import yamlio
+    from oodrl.metrics.tier_results import load_tier_results, tier_results_path
     from oodrl.metrics.time_aware import RULES
 
-    if not Path(TIER_RESULTS).is_file():
-        raise _missing(TIER_RESULTS, "tier_metrics", "the tier results file")
-    document = yamlio.load(Path(TIER_RESULTS).read_text())
+    path = tier_results_path(Path("."))
+    if not path.is_file():
+        raise _missing(path, "tier_metrics", "the tier results file")
+    document = load_tier_results(path)
     found: dict[tuple[str, str], set[float]] = {}
     alphas = set()
     for record in document.get("records") or []:
@@ -249,8 +250,7 @@ def committed_thresholds(
             if len(values) > 1 or (not values and rule == "constant"):
                 what = "no threshold" if not values else f"{len(values)} different thresholds"
                 raise StoreError(
-                    f"{TIER_RESULTS}: {what} of detector {name!r} in its {rule} rule's "
-                    f"operating points."
+                    f"{path}: {what} of detector {name!r} in its {rule} rule's operating points."
                 )
             thresholds.setdefault(name, {})[rule] = values.pop() if values else None
     alpha = float(document.get("alpha", alphas.pop() if len(alphas) == 1 else math.nan))
@@ -518,7 +518,7 @@ def report(result: dict[str, Any]) -> str:
         ok = sum(r["verdict"] == "not significantly above α" for r in rows)
         out += [
             f"## False alarms: {n} fresh clean streams of {result['T']} steps per detector, "
-            f"at each detector's committed per-stream thresholds, both rules ({TIER_RESULTS})",
+            "at each detector's per-stream thresholds, both rules (the committed tier results)",
             "",
             far_table(rows, result["T"]),
             "",

@@ -5,7 +5,8 @@
         [--detectors D ...] [--versus cusum] [--at mild] [--n-boot 2000]
 
 Reads the suite's leaderboard.json (the leaderboard stage's output, git-tracked) and each run's
-reports/tier_results.yaml under --pipelines, computes nothing the pipeline has not measured,
+tier results under --pipelines (reports/tier_results.json, or a protocol-4 run's
+reports/tier_results.yaml), computes nothing the pipeline has not measured,
 and prints markdown:
 
 1. the top five per tier with the IQM of the metric and its 95% CI, as the leaderboard ranks
@@ -39,9 +40,9 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-import yaml
 
-from oodrl.io import yamlio  # libyaml's loader: a tier results file is megabytes
+from oodrl.errors import StoreError
+from oodrl.metrics.tier_results import load_tier_results, tier_results_path
 
 #: SPEC §20's detectors: the policy view, value-function surprise, a recurrent predictor, an
 #: anytime-valid test and the two baselines.
@@ -55,11 +56,11 @@ MIN_CELLS = 5
 
 
 def load(path: Path, parse, keys: tuple[str, ...], what: str) -> dict:
-    """The parsed file; exit 1 with one line when it does not parse or lacks one of `keys`."""
+    """`parse(path)`; exit 1 with one line when it does not parse or lacks one of `keys`."""
     try:
-        document = parse(path.read_text())
+        document = parse(path)
         missing = [key for key in keys if key not in document]
-    except (ValueError, TypeError, yaml.YAMLError) as error:
+    except (ValueError, TypeError, StoreError) as error:
         reason = f"{type(error).__name__}: {(str(error).splitlines() or [''])[0]}"
     else:
         if not missing:
@@ -120,10 +121,12 @@ def landing(board: dict, metric: str, tiers: list[str], detectors: list[str]) ->
 
 @functools.cache
 def tier_documents(pipelines: Path) -> dict[Path, dict]:
-    """Each run's parsed reports/tier_results.yaml (megabytes each: parsed once)."""
+    """Each run's parsed tier results (megabytes each: parsed once), by file."""
+    paths = [tier_results_path(run) for run in sorted(pipelines.iterdir()) if run.is_dir()]
     return {
-        path: load(path, yamlio.load, ("alpha",), "a tier results file")
-        for path in sorted(pipelines.glob("*/reports/tier_results.yaml"))
+        path: load(path, load_tier_results, ("alpha",), "a tier results file")
+        for path in paths
+        if path.is_file()
     }
 
 
@@ -238,7 +241,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {path} not found; build the suite (oodrl suite run) or pass --suite.",
               file=sys.stderr)  # fmt: skip
         return 1
-    board = load(path, json.loads, ("iqm", "cells", "runs"), "the leaderboard stage's JSON")
+    board = load(
+        path, lambda p: json.loads(p.read_text()), ("iqm", "cells", "runs"),
+        "the leaderboard stage's JSON",
+    )  # fmt: skip
     if args.metric not in board["iqm"]:
         print(f"error: --metric {args.metric}: the leaderboard has {', '.join(board['iqm'])}.",
               file=sys.stderr)  # fmt: skip

@@ -3,6 +3,16 @@ cost (issue 61: verified tiers that fresh episodes show off their level).
 
     python benchmarks/verification_budget.py [--fresh [RUN=fresh.json ...]]
 
+Protocol 4 verified a tier whose interval met level ± tolerance at any width; this table over
+its records is what decided protocol 5's rule (`oodrl.protocol.tier_search.tier_verified`): a
+tier is verified only once its half-width is at most `ci_target` (0.02). On all 21 runs' fresh
+checks, none of the 85 tiers verified at ±0.02 fails the goal's test, and 59 of the 387 accepted
+wider do (2 of 26 at half-width ≤ 0.025, 3 of 23 at ≤ 0.03, 16 of 79 at ≤ 0.04, 38 of 259
+wider), so no wider target is safe; extrapolated to ±0.02, a fault's verification needs 1,300
+episodes at the median and 2,510 at the 90th percentile, hence protocol 5's cap of 2,500
+(`max_verify_batches` 50 × `verify_batch` 50). On protocol-5 records every verified tier has
+met its target: the "not met" column is 0.
+
 Reads the committed impact records of every run (data/impact/*.yaml at the root and in each
 pipeline/<run>/): each tier's verification, its episodes, the half-width of its R̃ interval and
 whether that reached the search's `ci_target`, and each fault's impact episodes (search and

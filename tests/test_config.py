@@ -134,8 +134,8 @@ BAD = [
     ),
     (
         "tier verification overflows its seed block",
-        _set("tiers.search.verify_batch", 10_000),
-        "tiers.search.verify_batch: max_verify_batches 6 × verify_batch 10000 = 60000 "
+        _set("tiers.search.verify_batch", 1_001),
+        "tiers.search.verify_batch: max_verify_batches 50 × verify_batch 1001 = 50050 "
         "verification seeds overflow their block of 50000 (from seed + 950000). Allowed: "
         "max_verify_batches × verify_batch <= 50000.",
     ),

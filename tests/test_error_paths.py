@@ -57,8 +57,8 @@ def test_a_pipeline_never_built_names_how_to_restore_or_build_its_results(tmp_pa
     with pytest.raises(StoreError) as raised:
         oodrl.load_results(tmp_path, kind="tiers")
     message = str(raised.value)
-    assert message.startswith(f"{tmp_path / 'reports' / 'tier_results.yaml'}: no results file")
-    assert "`git checkout` restores" in message and "`dvc repro`" in message
+    assert message.startswith(f"{tmp_path / 'reports' / 'tier_results.json'}: no tier results")
+    assert "`git checkout` restores" in message and "`dvc repro tier_metrics`" in message
     assert "\n" not in message
 
 
@@ -125,7 +125,7 @@ def test_a_pipeline_without_committed_tiers_is_a_store_error_naming_both_sources
     with pytest.raises(StoreError) as raised:
         committed_impacts(Pipeline(tmp_path, "CartPole-v1", "0"), ["stuck_actuator"])
     message = str(raised.value)
-    assert message.startswith(f"{tmp_path}: no committed impact tiers (reports/tier_results.yaml")
+    assert message.startswith(f"{tmp_path}: no committed impact tiers (reports/tier_results.json")
     assert "`dvc repro tier_metrics`" in message and "\n" not in message
 
 

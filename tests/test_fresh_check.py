@@ -16,6 +16,8 @@ import yaml
 from benchmark_scripts import BENCHMARKS, load_benchmark
 from tiny_pipeline import DETECTORS, file_stamps
 
+from oodrl.metrics.tier_results import load_tier_results
+
 pytestmark = pytest.mark.slow
 
 SCRIPT = BENCHMARKS / "fresh_check.py"
@@ -95,8 +97,8 @@ def test_tables_count_what_was_asked(pipeline, tmp_path):
     assert result["tiers"]["returns"]["n_random"] == EPISODES
     measured = [r for r in result["tiers"]["rows"] if r["severity"] != "unreachable"]
     assert measured and all(r["n_episodes"] == EPISODES for r in measured)
-    # The thresholds are the committed ones of tier_results.yaml.
-    records = yaml.safe_load((pipeline / "reports/tier_results.yaml").read_text())["records"]
+    # The thresholds are the committed ones of the tier results.
+    records = load_tier_results(pipeline)["records"]
     committed_thresholds = {
         **{(r["detector"], "constant"): r["operating_point"]["threshold"] for r in records},
         **{(r["detector"], "time_aware"): r["time_aware"]["operating_point"]["threshold"]
@@ -164,7 +166,7 @@ def test_a_missing_output_is_one_line_naming_its_restore(pipeline, tmp_path):
     assert done.returncode == 1
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1
-    assert "reports/tier_results.yaml" in lines[0] and "dvc checkout" in lines[0]
+    assert "reports/tier_results.json" in lines[0] and "dvc checkout" in lines[0]
 
 
 def test_a_tier_is_judged_by_its_interval_against_the_band(script):

@@ -11,6 +11,7 @@ from pathlib import Path
 from report.test_leaderboard_report import write_results
 
 from oodrl.io import yamlio
+from oodrl.metrics.tier_results import tier_results_text
 from oodrl.stages.leaderboard import run_leaderboard
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "leaderboard_summary.py"
@@ -39,7 +40,11 @@ def test_summary_of_a_known_leaderboard(tmp_path: Path):
         tier_results = {"alpha": 0.05, "false_alarm_audit": {
             "cusum": audit(4, 0.01), "kde_density": audit(20, 0.06 if policy == "0" else 0.04),
         }}  # fmt: skip
-        (run / "tier_results.yaml").write_text(yamlio.dump(tier_results))
+        # Hopper's runs rebuilt at protocol 5 (JSON), CartPole's still protocol 4's YAML.
+        if env == "Hopper-v5":
+            (run / "tier_results.json").write_text(tier_results_text(tier_results))
+        else:
+            (run / "tier_results.yaml").write_text(yamlio.dump(tier_results))
     run_leaderboard(results, tmp_path / "suite", n_boot=200, ci=0.95, seed=0)
     done = subprocess.run(
         [sys.executable, SCRIPT, "--suite", tmp_path / "suite", "--pipelines",

@@ -269,17 +269,16 @@ def test_the_readme_monitor_demo_agrees_with_its_leaderboard_cell(monkeypatch):
 
 
 def test_the_readme_monitor_cell_is_the_committed_result():
-    """The cell the monitor page quotes is the committed run's (reports/tier_results.yaml, a DVC
-    output: present after `dvc repro` or `dvc pull`), at the tier severity the demo deploys."""
-    results = ROOT / "reports" / "tier_results.yaml"
-    if not results.is_file():
-        pytest.skip("reports/tier_results.yaml is not built here (run `dvc repro`)")
-    from oodrl.io import yamlio
+    """The cell the monitor page quotes is the committed run's (its tier results, a DVC output:
+    present after `dvc repro` or `dvc pull`), at the tier severity the demo deploys."""
+    from oodrl.metrics.tier_results import load_tier_results, tier_results_path
 
+    if not tier_results_path(ROOT).is_file():
+        pytest.skip("reports/tier_results.json is not built here (run `dvc repro`)")
     args, (rate, low, high) = _readme_demo()
     detector, fault = _option(args, "--detector"), _option(args, "--fault")
     severity = float(_option(args, "--severity"))
-    records = yamlio.load(results.read_text())["records"]
+    records = load_tier_results(ROOT)["records"]
     (record,) = [
         r
         for r in records

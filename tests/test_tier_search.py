@@ -97,7 +97,7 @@ def test_a_tier_the_default_probes_leave_off_its_level_is_flagged(world):
     level in truth: its verification on fresh episodes says so. Every tier verified is on its
     level within the tolerance and the verification's noise."""
     result = _search(concave, world=world)
-    assert len(result.probes) == 6 and result.episodes <= 900
+    assert len(result.probes) == 6 and result.episodes <= result.config.budget
     for name, level in LEVELS.items():
         tier = result.tiers[name]
         error = abs(concave(tier.severity) - level)
@@ -150,5 +150,5 @@ def test_the_reference_holds_every_seed_an_impact_stage_reads():
     each once: what impact_reference measures, so every fault's paired estimates reuse them."""
     search = TierSearchConfig()
     seeds = reference_seeds(0, 30, search)
-    assert len(seeds) == len(set(seeds)) == 30 + 100 + 6 * 50
+    assert len(seeds) == len(set(seeds)) == 30 + 100 + 50 * 50
     assert seeds[:30] == policy_seeds(0, 30) and seeds[30:] == crn_reference_seeds(0, search)

@@ -1,4 +1,4 @@
-"""Protocol 4's tier search (`oodrl.protocol.tier_search`) on synthetic faults whose impact curve
+"""The tier search (`oodrl.protocol.tier_search`) on synthetic faults whose impact curve
 R̃(σ) is known in closed form: a smooth one with per-episode noise, and a bimodal one (each
 episode either keeps its return or crashes past a severity of its own, from a two-mode clean
 return). Episodes are functions of (σ, reset seed) only, as the collector's are, so the common
@@ -20,15 +20,20 @@ from oodrl.protocol.impact import LEVELS, Estimate, Reference, tier_tolerance
 from oodrl.protocol.tier_search import (
     CrnSearchConfig,
     ci_meets_level,
+    ci_target_met,
     crn_reference_seeds,
     crn_search_seeds,
     crn_verify_seeds,
     search_fault,
+    tier_verified,
     verify_steps,
 )
 
 N_BOOT = 400
 GAP = 300.0  # clean mean − random mean
+#: For tests of the search alone: protocol 4's verification (6 batches, 300 reference seeds),
+#: not the default 50 (2,500 seeds to resample) that a fault whose CIs stay wide spends in full.
+SEARCH_ONLY = CrnSearchConfig(max_verify_batches=6, budget=900)
 
 
 @functools.cache
@@ -109,7 +114,7 @@ def _root(fault: World, level: float) -> float:
 def test_each_tier_is_the_root_of_the_true_curve(world):
     """On the smooth fault every tier lands where the true curve meets its level, within the
     tolerance plus the 100 common episodes' noise."""
-    fault, result = run(Smooth, world)
+    fault, result = run(Smooth, world, config=SEARCH_ONLY)
     for name, level in LEVELS.items():
         severity = result.tiers[name].severity
         assert severity is not None
@@ -122,8 +127,8 @@ def test_the_coarse_curve_only_guides_and_the_root_is_the_same():
     fit finds: the same sample root within the tolerance."""
     grid = [0.0, *(0.1 * k for k in range(1, 11))]
     coarse = (grid, [1.0 - 0.45 * s - 0.3 * s**2 for s in grid])
-    fault, guided = run(Smooth, 7, coarse=coarse)
-    _, blind = run(Smooth, 7)
+    fault, guided = run(Smooth, 7, config=SEARCH_ONLY, coarse=coarse)
+    _, blind = run(Smooth, 7, config=SEARCH_ONLY)
     assert [p.severity for p in guided.probes] != [p.severity for p in blind.probes]
     for name, level in LEVELS.items():
         assert abs(fault.true(guided.tiers[name].severity) - level) <= 0.035
@@ -131,7 +136,7 @@ def test_the_coarse_curve_only_guides_and_the_root_is_the_same():
 
 @pytest.mark.parametrize("world", range(8))
 def test_bimodal_tiers_are_ordered_and_near_their_levels(world):
-    fault, result = run(Bimodal, world)
+    fault, result = run(Bimodal, world, config=SEARCH_ONLY)
     severities = [result.tiers[name].severity for name in LEVELS]
     assert None not in severities
     assert severities == sorted(severities)
@@ -150,7 +155,7 @@ class Wavy(Smooth):
 
 @pytest.mark.parametrize("world", range(3))
 def test_tiers_stay_ordered_on_a_curve_that_rises_in_places(world):
-    _, result = run(Wavy, world)
+    _, result = run(Wavy, world, config=SEARCH_ONLY)
     severities = [result.tiers[name].severity for name in LEVELS]
     assert None not in severities and severities == sorted(severities)
     xs, fit = result.curve
@@ -158,7 +163,7 @@ def test_tiers_stay_ordered_on_a_curve_that_rises_in_places(world):
 
 
 def test_every_probe_shares_the_search_seeds_and_verification_never_does():
-    fault, result = run(Bimodal, 3)
+    fault, result = run(Bimodal, 3, config=SEARCH_ONLY)
     search = crn_search_seeds(0, result.config)
     probe_calls = fault.calls[: len(result.probes)]
     verify_calls = fault.calls[len(result.probes) :]
@@ -205,7 +210,7 @@ def test_seed_streams_are_disjoint_from_each_other_and_every_other_block():
     [
         ({"verify_batch": 10_000, "max_verify_batches": 6}, "tiers.search.verify_batch"),
         ({"max_verify_batches": 3}, "tiers.search.max_verify_batches"),
-        ({"max_probes": 8}, "tiers.search.budget"),
+        ({"max_probes": 30}, "tiers.search.budget"),
     ],
 )
 def test_sizes_that_overflow_a_seed_block_or_the_budget_are_refused(settings, key):
@@ -224,10 +229,10 @@ def test_the_budget_is_respected_and_stated(kind):
     fault, result = run(kind, 5)
     spent = sum(len(seeds) for _, seeds in fault.calls)
     record = result.as_dict()["episodes"]
-    assert spent == record["total"] == result.episodes <= 900 == record["budget"]
+    assert spent == record["total"] == result.episodes <= 3_100 == record["budget"]
     assert record["search"] == 100 * len(result.probes) <= 600
     batches = sum(t.batches for t in result.tiers.values())
-    assert batches <= 6 and record["verification"] == 50 * batches
+    assert batches <= 50 and record["verification"] == 50 * batches
 
 
 def test_a_small_budget_spends_less_and_a_too_small_one_is_refused():
@@ -240,9 +245,9 @@ def test_a_small_budget_spends_less_and_a_too_small_one_is_refused():
 
 
 def test_same_seed_same_result_and_another_seed_other_episodes():
-    a = run(Bimodal, 2, seed=11)[1].as_dict()
-    b = run(Bimodal, 2, seed=11)[1].as_dict()
-    c = run(Bimodal, 2, seed=12)[1].as_dict()
+    a = run(Bimodal, 2, seed=11, config=SEARCH_ONLY)[1].as_dict()
+    b = run(Bimodal, 2, seed=11, config=SEARCH_ONLY)[1].as_dict()
+    c = run(Bimodal, 2, seed=12, config=SEARCH_ONLY)[1].as_dict()
     assert a == b
     assert a["seeds"] != c["seeds"] and a["probes"] != c["probes"]
 
@@ -269,6 +274,68 @@ def test_verification_goes_to_the_widest_ci():
 def test_verified_iff_the_ci_meets_the_band(ci, expected):
     estimate = Estimate(0.3, sum(ci) / 2, ci, 100)
     assert ci_meets_level(estimate, LEVELS["mild"], 0.015) is expected
+
+
+@pytest.mark.parametrize(
+    ("ci", "meets_level", "target_met"),
+    [
+        ((0.935, 0.965), True, True),  # ±0.015 around the level: verified
+        ((0.94, 0.979), True, True),  # ±0.0195, reaching up to the band: verified
+        ((0.92, 0.98), True, False),  # covers the level, but ±0.03
+        ((0.90, 1.00), True, False),  # covers the level, but ±0.05
+        ((0.97, 0.99), False, True),  # narrow, wholly above level + tolerance
+    ],
+)
+def test_a_tier_is_verified_only_when_its_ci_meets_the_band_and_the_target(
+    ci, meets_level, target_met
+):
+    """Protocol 5: a CI that meets the level but is wider than `ci_target` (±0.02) is not a
+    verification; a narrow one is, if it meets the band."""
+    estimate = Estimate(0.3, sum(ci) / 2, ci, 100)
+    config = TierSearchConfig()
+    assert ci_meets_level(estimate, LEVELS["mild"], config.tolerance) is meets_level
+    assert ci_target_met(estimate, config.ci_target) is target_met
+    assert tier_verified(estimate, LEVELS["mild"], config) is (meets_level and target_met)
+    # The same holds for a stepped tier's band [floor, level].
+    assert tier_verified(estimate, LEVELS["mild"], config, floor=0.9) is (
+        meets_level and target_met
+    )
+
+
+class Noisy(Smooth):
+    """Smooth, with per-episode noise growing with σ (0.6σ of the gap): the severe tier's CI
+    needs about 600 episodes to reach ±0.02, the others a few batches at most."""
+
+    def loss(self, severity: float, seed: int) -> float:
+        w = np.random.default_rng([self.world, seed, 3]).standard_normal()
+        return super().loss(severity, seed) + GAP * 0.6 * severity * w
+
+
+def test_a_tier_still_wider_than_the_target_at_the_cap_is_not_verified():
+    """With 6 batches the widest tier (severe) gets every batch past the first four, and its CI,
+    though it meets the level, is still wider than ±0.02: recorded with its CI, unverified."""
+    _, result = run(Noisy, 0, config=CrnSearchConfig(max_verify_batches=6))
+    tiers = result.tiers
+    assert sum(t.batches for t in tiers.values()) == 6  # the cap is spent
+    severe = tiers["severe"]
+    assert severe.batches == 3
+    assert ci_meets_level(severe.verification, severe.level, 0.015)
+    assert not ci_target_met(severe.verification, 0.02) and not severe.verified
+    record = result.as_dict()["tiers"]["severe"]["verification"]
+    assert record["ci_target_met"] is False and record["verified"] is False
+    assert record["episodes"] == 150 and record["half_width"] > 0.02
+
+
+def test_verification_spends_batches_until_every_tier_reaches_the_target():
+    """With the default cap the same fault's verification goes on, each batch to the widest CI,
+    until every CI is within ±0.02; then it stops, short of the cap, with every tier
+    verified."""
+    _, result = run(Noisy, 0)
+    tiers = result.tiers
+    for tier in tiers.values():
+        assert ci_target_met(tier.verification, 0.02) and tier.verified
+    assert tiers["severe"].batches == max(t.batches for t in tiers.values()) > 3
+    assert sum(t.batches for t in tiers.values()) < result.config.max_verify_batches
 
 
 class Drifted(Smooth):
@@ -331,7 +398,7 @@ def test_the_record_holds_plain_values_and_every_probe():
     """The record may be copied into JSON files: plain values only; every probe (σ, R̃ with its
     CI, episodes) and the fit of them are there, and each tier's precision is its verification's
     CI (SPEC §23)."""
-    _, result = run(Bimodal, 1)
+    _, result = run(Bimodal, 1, config=SEARCH_ONLY)
     record = result.as_dict()
     assert json.loads(json.dumps(record)) == record  # no tuple, numpy scalar or NaN
     assert record["method"] == "common random numbers"
@@ -377,7 +444,7 @@ def test_a_stepped_fault_is_verified_on_its_band_without_a_search():
     }
     assert result.tiers["mild"].verification is None
     used = {s for _, seeds in fault.calls for s in seeds}
-    assert used.isdisjoint(crn_search_seeds(0, config)) and result.episodes == len(used) <= 900
+    assert used.isdisjoint(crn_search_seeds(0, config)) and result.episodes == len(used) <= 3_100
     record = result.as_dict()
     assert record["method"] == "steps" and "probes" not in record
     assert record["tiers"]["mild"] == {"level": 0.95, "severity": "unreachable"}

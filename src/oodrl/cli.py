@@ -651,7 +651,7 @@ def tier_metrics(
         Path, PathOption("--cells", help="the directory of the detectors' cells files")
     ],
     impact: Annotated[Path, PathOption(help="the directory of the faults' impact documents")],
-    results: Annotated[Path, PathOption(help="tier_results.yaml")],
+    results: Annotated[Path, PathOption(help="the tier results file, reports/tier_results.json")],
     report: Annotated[Path, PathOption(help="directory: tables.md, impact_curves.png")],
     params: ParamsOption = Path("params.yaml"),
 ) -> None:
@@ -659,6 +659,11 @@ def tier_metrics(
     false-alarm budget (SPEC §15), merged from the detectors' cells."""
     from oodrl.stages.tier_metrics import run_tier_metrics
 
+    if results.suffix != ".json":  # protocol 5 writes JSON; a .yaml name would mislead readers
+        raise ConfigError(
+            f"--results {results}: tier results are written as JSON from protocol 5; name a "
+            f".json file (reports/tier_results.json)."
+        )
     config = _load(params)
     with _stage("tier_metrics"):
         run_tier_metrics(config, cells_dir, impact, results, report)

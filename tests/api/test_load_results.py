@@ -14,6 +14,7 @@ import yaml
 import oodrl
 from oodrl.api.results import COLUMNS
 from oodrl.errors import ConfigError, StoreError
+from oodrl.metrics.tier_results import load_tier_results, tier_results_path
 
 KEYS = ["env", "policy", "fault", "tier", "detector", "metric"]
 
@@ -147,7 +148,7 @@ def test_a_pipelines_results_are_its_records_metrics(repo_root):
 
 
 def test_a_pipelines_tiers_hold_the_operating_points(repo_root):
-    document = _yaml(repo_root / "reports/tier_results.yaml")
+    document = load_tier_results(repo_root)  # protocol 4's YAML until the root is rebuilt
     frame = oodrl.load_results(repo_root, kind="tiers")
     k = document["k"]
     # Five rows a rule's operating point (the time-aware rule's from protocol version 4, where a
@@ -231,8 +232,8 @@ def test_a_broken_results_file_is_a_store_error(tmp_path):
 
 
 def test_evaluate_reads_tier_results_impact_section_alone(repo_root):
-    """`evaluate` parses only tier_results.yaml's `impact` section; it equals the whole file's."""
-    from oodrl.api.evaluation import _impact_section
-
-    path = repo_root / "reports/tier_results.yaml"
-    assert _impact_section(path) == _yaml(path)["impact"]
+    """`evaluate` reads only the tier results' `impact` section (of a protocol-4 YAML, parsed
+    alone); it equals the whole file's."""
+    path = tier_results_path(repo_root)
+    whole = load_tier_results(path)
+    assert load_tier_results(path, keys=["impact"]) == {"impact": whole["impact"]}

@@ -32,7 +32,7 @@ def test_params_hash_follows_resolved_params_not_the_executor():
     other = parse_params(PARAMS | {"seed": 1}, "p", components=False)
     assert params_hash(other) != params_hash(base)
     stamp = protocol_stamp(base)
-    assert stamp["protocol_version"] == PROTOCOL_VERSION == 4 and stamp["params_hash"].startswith(
+    assert stamp["protocol_version"] == PROTOCOL_VERSION == 5 and stamp["params_hash"].startswith(
         "sha256:"
     )
 

@@ -26,8 +26,8 @@ from oodrl.io.store import severity_key, write_scores
 from oodrl.metrics.cells import DetectorCells, cells_text, parse_cells
 from oodrl.metrics.tiers import (
     CURVE_KEYS,
-    _detector_records,
     _false_alarm_audit,
+    detector_records,
     tier_tables,
     time_aware_detection_metric,
 )
@@ -104,7 +104,7 @@ def stores(params, tmp_path_factory) -> tuple[Path, Path]:
 
 @pytest.fixture(scope="module")
 def records(params, stores) -> dict[str, list[dict]]:
-    return {d: _detector_records(params, *stores, d) for d in params.benchmark.detectors}
+    return {d: detector_records(params, *stores, d) for d in params.benchmark.detectors}
 
 
 def _plain(value, where: str = "record") -> None:
@@ -211,7 +211,7 @@ def test_fewer_than_300_fit_values_leave_the_time_aware_rule_null_with_its_reaso
             target = alone / path.relative_to(scores_dir)
             target.parent.mkdir(parents=True, exist_ok=True)
             target.write_bytes(path.read_bytes())
-    without = _detector_records(params, alone, impact_dir, DETECTORS[0])
+    without = detector_records(params, alone, impact_dir, DETECTORS[0])
     aware = without[0]["time_aware"]
     assert aware["operating_point"] is None and aware["fit_values"] is None
     assert aware["reason"].startswith(f"no scores of the ID set ({DETECTORS[0]}/id.zarr")

@@ -7,6 +7,7 @@ from pathlib import Path
 from conftest import DETECTORS, INJECTORS
 
 from oodrl.io import yamlio
+from oodrl.metrics.tier_results import TIER_RESULTS
 from oodrl.stages.leaderboard import run_leaderboard
 
 
@@ -22,7 +23,7 @@ def test_leaderboard_reads_the_pipelines_results(built_repo: Path, tmp_path: Pat
     assert document["protocol_version"] == yamlio.load(results.read_text()).get(
         "protocol_version", 1
     )
-    tiers = built_repo / "reports" / "tier_results.yaml"
+    tiers = built_repo / TIER_RESULTS
     if tiers.is_file():  # the pipeline scores the impact tiers: they lead, harmful ones first
         from oodrl.metrics.leaderboard import tier_order
 

@@ -57,10 +57,12 @@ def test_full_pipeline_writes_every_output(built_repo):
 def _check_tier_results(repo) -> None:
     """SPEC §15: every detector at every reachable tier of every fault, at the per-stream rule."""
     from oodrl.metrics.stamp import PROTOCOL_VERSION
+    from oodrl.metrics.tier_results import TIER_RESULTS, load_tier_results, tier_results_text
     from oodrl.protocol.impact import tier_severity
     from oodrl.protocol.tiers import read_impact, read_tiers
 
-    document = yaml.safe_load((repo / "reports/tier_results.yaml").read_text())
+    document = load_tier_results(repo / TIER_RESULTS)
+    assert (repo / TIER_RESULTS).read_text() == tier_results_text(document)  # canonical text
     assert document["protocol_version"] == PROTOCOL_VERSION
     assert document["params_hash"].startswith("sha256:")
     reachable = {

@@ -23,6 +23,7 @@ from headless_chromium import chromium_path, file_url, load_offline
 from oodrl.io import yamlio
 from oodrl.metrics.leaderboard import build_board
 from oodrl.metrics.operating import OperatingPoint
+from oodrl.metrics.tier_results import load_tier_results, tier_results_text
 from oodrl.report.leaderboard import read_inputs
 from oodrl.report.leaderboard_page import curve_steps, page_data, page_html
 from oodrl.stages.leaderboard import run_leaderboard
@@ -83,7 +84,7 @@ def impact(fault: str, run: tuple[str, str]) -> dict:
 
 
 def write_run(directory: Path, run: tuple[str, str], seed: int) -> list[Path]:
-    """A run's results.yaml (headline: matched AUROC alone) and tier_results.yaml."""
+    """A run's results.yaml (headline: matched AUROC alone) and tier_results.json."""
     rng = np.random.default_rng(seed)
     headline, tiered = [], []
     detectors = [d for d in DETECTORS if run[0] == "CartPole-v1" or d != ONLY_CARTPOLE]
@@ -116,11 +117,11 @@ def write_run(directory: Path, run: tuple[str, str], seed: int) -> list[Path]:
                     "operating_point": operating_point(detected, seed * 1000 + len(tiered)),
                 })  # fmt: skip
     stamp = STAMP | {"params_hash": f"sha256:{seed:064x}"}
-    paths = [directory / "results.yaml", directory / "tier_results.yaml"]
+    paths = [directory / "results.yaml", directory / "tier_results.json"]
     directory.mkdir(parents=True, exist_ok=True)
     paths[0].write_text(yamlio.dump(stamp | {"records": headline}))
     tier_impact = {fault: impact(fault, run) for fault in FAULTS}
-    paths[1].write_text(yamlio.dump(stamp | {"records": tiered, "impact": tier_impact}))
+    paths[1].write_text(tier_results_text(stamp | {"records": tiered, "impact": tier_impact}))
     return paths
 
 
@@ -724,13 +725,13 @@ def test_what_the_time_aware_rule_changes_is_shown_for_the_chosen_tier(tmp_path:
     for run, (_, tiers) in results.items():
         if run[0] != "CartPole-v1":
             continue
-        document = yamlio.load(tiers.read_text())
+        document = load_tier_results(tiers)
         for record in document["records"]:
             hits = record["episodes"][RATE]
             detected = int(sum(hits)) + (5 if record["detector"] == "pedm" else 0)
             aware = [1.0] * min(detected, N_FAULTY) + [0.0] * (N_FAULTY - min(detected, N_FAULTY))
             record["episodes"][f"time_aware_{RATE}"] = aware
-        tiers.write_text(yamlio.dump(document))
+        tiers.write_text(tier_results_text(document))
     run_leaderboard(results, tmp_path / "out", n_boot=50, ci=0.95, seed=0)
     page = tmp_path / "out" / "leaderboard.html"
     data = embedded(page)

@@ -10,6 +10,7 @@ import pytest
 
 from oodrl.errors import StoreError
 from oodrl.io import yamlio
+from oodrl.metrics.tier_results import tier_results_text
 from oodrl.report.leaderboard import read_inputs
 from oodrl.stages.leaderboard import run_leaderboard
 
@@ -25,7 +26,8 @@ def write_results(
     detection: bool = False,
     extra: dict | None = None,
 ) -> Path:
-    """A results file as the metrics stage writes it; tier None = a record without a tier."""
+    """A results file as the metrics stage writes it (a .json path: as the tier_metrics stage
+    writes tier results); tier None = a record without a tier."""
     rng = np.random.default_rng(seed)
     records = [
         {"kind": "null", "detector": d, "injector": None, "mode": "posthoc", "metrics": {}}
@@ -47,8 +49,10 @@ def write_results(
                     record["episodes"]["detection_rate@100"] = [float(h) for h in hits]
                     record["operating_point"] = {"alpha": 0.05, "k": 100}
                 records.append(record)
+    document = {"records": records} | (extra or {})
+    text = tier_results_text(document) if path.suffix == ".json" else yamlio.dump(document)
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yamlio.dump({"records": records} | (extra or {})))
+    path.write_text(text)
     return path
 
 
@@ -221,16 +225,18 @@ def test_a_detector_that_runs_on_some_runs_is_ranked_where_it_runs(results, tmp_
 
 def test_the_stage_reads_headline_and_tier_results_of_every_environment(tmp_path: Path):
     from oodrl.config import parse_params
-    from oodrl.stages.leaderboard import HEADLINE_RESULTS, TIER_RESULTS, results_files, run
+    from oodrl.metrics.tier_results import PROTOCOL_4_TIER_RESULTS, TIER_RESULTS
+    from oodrl.stages.leaderboard import HEADLINE_RESULTS, results_files, run
     from oodrl.suite.environments import PIPELINE_DIRS, suite_runs
 
     strength = {"cusum": 0.9, "kde_density": 0.6, "pedm": 0.7}
     stamp = {"protocol_version": 2, "params_hash": "sha256:0"}
     for seed, directory in enumerate(suite_runs().values()):  # every run: a missing one fails
         write_results(tmp_path / directory / HEADLINE_RESULTS, seed, strength, extra=stamp)
-        if seed < 3:  # the impact tiers scored in three environments
+        if seed < 3:  # the impact tiers scored in three environments, one rebuilt (JSON)
+            tiers = TIER_RESULTS if seed == 0 else PROTOCOL_4_TIER_RESULTS
             write_results(
-                tmp_path / directory / TIER_RESULTS, 100 + seed, strength,
+                tmp_path / directory / tiers, 100 + seed, strength,
                 tiers=("mild", "moderate"), detection=True, extra=stamp,
             )  # fmt: skip
     files = results_files(tmp_path)

@@ -8,7 +8,7 @@ detector's fit and calibration split) and the held-out calibration, audit and tw
 pipeline committed; the detector is fitted and calibrated as `oodrl.stages.fit` does and
 pickled; `oodrl.stages.score` scores every set with a freshly loaded copy; and
 `oodrl.metrics.tiers.compute_tier_results`, the tier metrics' own entry point, turns the scores
-into tier_results.yaml's records, with the evaluated detector as the benchmark's only one and
+into the tier results' records, with the evaluated detector as the benchmark's only one and
 the committed impact records (curve and returns, the chosen tiers) as its faults'. So at the
 pipeline's own params (`size="full"`) a built-in detector's numbers are the pipeline's, bit for bit
 (tests/api/test_evaluate.py checks it on a tiny pipeline).
@@ -91,8 +91,8 @@ def evaluate(
         The pipeline: a name under ``pipeline/`` (``"cartpole"``, ``"cartpole_policy1"``),
         an environment id of the suite (``"CartPole-v1"``: its first policy), or a pipeline
         directory. Its committed policy (``models/policy.pt``) is the agent, its params the
-        protocol, and the tier severities are the ones its committed
-        ``reports/tier_results.yaml`` holds.
+        protocol, and the tier severities are the ones its committed tier results hold
+        (``reports/tier_results.json``; a protocol-4 pipeline's ``reports/tier_results.yaml``).
     faults : sequence of str, optional
         Faults of the pipeline (its ``benchmark.injectors``); default: every fault with one of
         `tiers` reachable.
@@ -144,6 +144,7 @@ def evaluate(
 
     from oodrl.api.results import COLUMNS, tier_rows
     from oodrl.metrics.stamp import PROTOCOL_VERSION
+    from oodrl.metrics.tier_results import tier_results_path
 
     size = os.environ.get(SIZE_VARIABLE) or size
     if size not in SIZES:
@@ -159,7 +160,7 @@ def evaluate(
     if not plan:
         raise ConfigError(
             f"no fault of {pipeline.directory} reaches tier {', '.join(chosen)} (committed "
-            f"tiers in {pipeline.directory / 'reports/tier_results.yaml'}). Allowed: faults "
+            f"tiers in {tier_results_path(pipeline.directory)}). Allowed: faults "
             f"with a reachable tier: {', '.join(sorted(_reachable(committed))) or 'none'}."
         )
     params = _with_injectors(params, list(plan))
@@ -318,12 +319,15 @@ def _faults(faults: Sequence[str] | None, known: Sequence[str]) -> list[str]:
 def committed_impacts(pipeline: Pipeline, faults: Sequence[str]) -> dict[str, dict[str, Any]]:
     """fault -> its impact record as the pipeline committed it (`clean_return`,
     `random_return`, `curve`, `tiers`: tier -> {severity, verification, ...}, and
-    `severity_steps` where the fault has them): the `impact` section of
-    reports/tier_results.yaml, git-tracked; for a fault it lacks, data/impact/<fault>.yaml (the
-    impact stage's output, where present)."""
+    `severity_steps` where the fault has them): the `impact` section of its tier results
+    (`oodrl.metrics.tier_results.load_tier_results`), git-tracked; for a fault they lack,
+    data/impact/<fault>.yaml (the impact stage's output, where present)."""
+    from oodrl.metrics.tier_results import load_tier_results, tier_results_path
     from oodrl.protocol.tiers import IMPACT_DIR, impact_path, read_impact
 
-    section = _impact_section(pipeline.directory / "reports" / "tier_results.yaml")
+    section: dict[str, Any] = {}
+    if tier_results_path(pipeline.directory).is_file():
+        section = load_tier_results(pipeline.directory, keys=["impact"]).get("impact") or {}
     found: dict[str, dict[str, Any]] = {}
     for fault in faults:
         if fault in section:
@@ -339,42 +343,15 @@ def committed_impacts(pipeline: Pipeline, faults: Sequence[str]) -> dict[str, di
             }
     if not found:
         raise StoreError(
-            f"{pipeline.directory}: no committed impact tiers (reports/tier_results.yaml or "
-            "data/impact/<fault>.yaml); `git checkout` restores the committed results, "
-            "`dvc repro tier_metrics` in the pipeline builds them."
+            f"{pipeline.directory}: no committed impact tiers (reports/tier_results.json, a "
+            "protocol-4 reports/tier_results.yaml, or data/impact/<fault>.yaml); `git checkout` "
+            "restores the committed results, `dvc repro tier_metrics` in the pipeline builds them."
         )
     return found
 
 
-#: A fault's keys in tier_results.yaml's `impact` section besides the returns.
+#: A fault's keys in the tier results' `impact` section besides the returns.
 _IMPACT_KEYS = ("tiers", "curve", "severity_steps")
-
-
-def _impact_section(path: Path) -> dict[str, Any]:
-    """tier_results.yaml's `impact` mapping. The file's top-level keys are sorted, one per
-    unindented line, so the section is parsed alone (a fraction of a second; the whole file
-    takes seconds); the whole file is parsed when the section refers to an anchor outside."""
-    import yaml
-
-    from oodrl.io import yamlio
-
-    if not path.is_file():
-        return {}
-    text = path.read_text(encoding="utf-8")
-    section = _top_level_block(text, "impact")
-    if section is not None:
-        with contextlib.suppress(yaml.YAMLError):
-            return (yamlio.load(section) or {}).get("impact") or {}
-    return (yamlio.load(text) or {}).get("impact") or {}
-
-
-def _top_level_block(text: str, key: str) -> str | None:
-    """The lines of top-level `key:` and its indented value, or None when there is none."""
-    match = re.search(rf"^{re.escape(key)}:[ \t]*\n", text, flags=re.MULTILINE)
-    if match is None:
-        return None
-    end = re.compile(r"^[^\s#-]", flags=re.MULTILINE).search(text, match.end())
-    return text[match.start() : end.start() if end else len(text)]
 
 
 def _reachable(committed: Mapping[str, Mapping[str, Any]]) -> dict[str, list[str]]:

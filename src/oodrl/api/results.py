@@ -31,10 +31,12 @@ COLUMNS = (
     "env", "policy", "fault", "tier", "detector", "metric", "value", "ci_low", "ci_high",
     "n_streams", "alpha", "severity", "mode", "verified", "family", "protocol",
 )  # fmt: skip
-#: kind -> the file holding it, relative to a pipeline's (or the suite's) directory.
+#: kind -> the file holding it, relative to a pipeline's (or the suite's) directory; a
+#: protocol-4 pipeline's tiers are in reports/tier_results.yaml until it is rebuilt
+#: (`oodrl.metrics.tier_results.load_tier_results` reads either).
 PIPELINE_FILES = {
     "results": Path("reports/results.yaml"),
-    "tiers": Path("reports/tier_results.yaml"),
+    "tiers": Path("reports/tier_results.json"),
     "sweep": Path("reports/sweep_results.yaml"),
 }
 SUITE_FILES = {
@@ -48,6 +50,7 @@ RANKING_COLUMNS = (*COLUMNS, "statistic", "n_cells")
 #: A results file's name -> its kind, for a file passed as `where`.
 FILE_KINDS = {
     "results.yaml": "results",
+    "tier_results.json": "tiers",
     "tier_results.yaml": "tiers",
     "sweep_results.yaml": "sweep",
     "leaderboard.json": "leaderboard",
@@ -69,17 +72,18 @@ def load_results(
     where : str or path-like, default "."
         A pipeline directory (the project root is the paper's LunarLander pipeline;
         ``pipeline/<env>`` each environment's), the suite directory (``pipeline/suite``), or
-        a results file (``results.yaml``, ``tier_results.yaml``, ``sweep_results.yaml``,
-        ``leaderboard.json``). A pipeline's name (``"cartpole"``), an environment id of the
-        suite (``"CartPole-v1"``) or ``"suite"`` is looked up in the project around the
-        working directory.
+        a results file (``results.yaml``, ``tier_results.json`` or a protocol-4
+        ``tier_results.yaml``, ``sweep_results.yaml``, ``leaderboard.json``). A pipeline's
+        name (``"cartpole"``), an environment id of the suite (``"CartPole-v1"``) or
+        ``"suite"`` is looked up in the project around the working directory.
     kind : {"results", "tiers", "sweep", "leaderboard", "ranking"}, optional
         Which results. For a pipeline (default ``"results"``):
 
         - ``"results"``: ``reports/results.yaml``, every detector × fault at the headline
           severity (tier ``"headline"``) and the null baselines (tier ``"null"``);
-        - ``"tiers"``: ``reports/tier_results.yaml``, every detector × fault × impact tier
-          (``benign``, ``mild``, ``moderate``, ``severe``) at the per-stream false-alarm
+        - ``"tiers"``: ``reports/tier_results.json`` (a protocol-4 pipeline's
+          ``reports/tier_results.yaml`` until it is rebuilt), every detector × fault × impact
+          tier (``benign``, ``mild``, ``moderate``, ``severe``) at the per-stream false-alarm
           budget α: ``detection_rate@K`` with its Clopper-Pearson CI, the delays of the
           detected streams, the achieved clean false-alarm rate and every per-episode
           metric with its bootstrap CI; from protocol version 4 also the time-aware
@@ -135,11 +139,11 @@ def load_results(
 
     Notes
     -----
-    The suite's leaderboard loads in about a second (JSON). A pipeline's
-    ``tier_results.yaml`` is a large YAML document: parsing it takes 8-13 s with libyaml
-    (PyYAML's ``CSafeLoader``, used when available) and far longer without. A form made for
-    programs (JSON) comes with the next change of the stage that writes it, which rebuilds
-    every project.
+    The suite's leaderboard loads in about a second (JSON). A pipeline's tier results are
+    JSON from protocol 5 (``tier_results.json``: parsed in a fraction of a second); a
+    protocol-4 pipeline's ``tier_results.yaml``, until it is rebuilt, is a large YAML
+    document: parsing it takes 3-13 s with libyaml (PyYAML's ``CSafeLoader``, used when
+    available) and far longer without.
 
     Examples
     --------
@@ -203,14 +207,26 @@ def _file_rows(path: Path, kind: str | None, alpha_curves: bool) -> tuple[Iterab
         return _board_rows(read_json(path), kind, path)
     pipeline_dir = path.parent.parent
     pipeline = pipeline_at(pipeline_dir) if is_pipeline(pipeline_dir) else None
-    return _document_rows(read_yaml(path), kind, pipeline, path, alpha_curves)
+    return _document_rows(_read(path, kind), kind, pipeline, path, alpha_curves)
 
 
 def _pipeline_rows(
     pipeline: Pipeline, kind: str, alpha_curves: bool
 ) -> tuple[Iterable[dict], dict]:
-    path = pipeline.directory / PIPELINE_FILES[kind]
-    return _document_rows(read_yaml(path), kind, pipeline, path, alpha_curves)
+    from oodrl.metrics.tier_results import tier_results_path
+
+    if kind == "tiers":
+        path = tier_results_path(pipeline.directory)
+    else:
+        path = pipeline.directory / PIPELINE_FILES[kind]
+    return _document_rows(_read(path, kind), kind, pipeline, path, alpha_curves)
+
+
+def _read(path: Path, kind: str) -> Any:
+    """A pipeline's results file: tier results in either form, the others YAML."""
+    from oodrl.metrics.tier_results import load_tier_results
+
+    return load_tier_results(path) if kind == "tiers" else read_yaml(path)
 
 
 def _suite_rows(directory: Path, kind: str, alpha_curves: bool) -> tuple[Iterable[dict], dict]:
@@ -423,7 +439,7 @@ def tier_rows(
     policy: str | None,
     alpha_curves: bool = False,
 ):
-    """Rows of tier_results.yaml's records (`oodrl.metrics.tiers`): each rule's operating
+    """Rows of the tier results' records (`oodrl.metrics.tiers`): each rule's operating
     point (`rule_points`), then the per-episode metrics."""
     for r in records:
         base = _base(env, policy, r.get("injector"), r.get("tier"), r.get("detector"),

@@ -7,7 +7,7 @@ results records, its sweep summaries and its tier records) from its own scores,
 (`write_cells`); the environment's `metrics` and `tier_metrics` stages merge every detector's
 cells (`read_all_cells`, then `oodrl.metrics.results.assemble_results` and
 `oodrl.metrics.tiers.assemble_tier_results`) into the files people read —
-reports/results.yaml, sweep_results.yaml, metrics.json, tables.md, tier_results.yaml and
+reports/results.yaml, sweep_results.yaml, metrics.json, tables.md, tier_results.json and
 reports/tiers/ — byte for byte as one computation over every detector's scores writes them
 (`oodrl.metrics.results.compute_results`; tests/metrics/test_cells.py). Adding a detector
 computes nothing of the others.
@@ -21,7 +21,7 @@ Why the split keeps every byte:
   summarised before. The null baseline is computed per detector from its own clean scores
   (`results._null_summary`), the operating points and their Clopper-Pearson intervals have no
   randomness, and the per-stream threshold comes from the detector's own calibration streams.
-  So `results._detector_results` and `tiers._detector_records`, called here one detector at a
+  So `results._detector_results` and `tiers.detector_records`, called here one detector at a
   time exactly as `compute_results` / `compute_tier_results` call them in `ordered_map`, give
   the same numbers, and both assemble them with the same functions (`assemble_results`,
   `assemble_tier_results`).
@@ -34,10 +34,9 @@ Why the split keeps every byte:
   (`tiers._minimum_detectable_impact`, per (detector, fault) from the merged records), and every
   table and figure (the best-per-anomaly ranks and the headline means need all detectors).
 - YAML anchors: results.yaml writes the summary that a detector's null records of both modes
-  share as one anchor (`ResultRecord.as_dict`), and tier_results.yaml the false-alarm audit's
-  interval as an anchor aliased in that detector's last record. `read_cells` gives a detector's
-  null records one summary object again, and the audit is rebuilt in the merge, so the object
-  graph — and so the YAML — is today's.
+  share as one anchor (`ResultRecord.as_dict`). `read_cells` gives a detector's null records
+  one summary object again, so the object graph — and so the YAML — is today's. (The tier
+  results are JSON, which has no anchors: a shared object is written where it appears.)
 
 The cells file is JSON (`write_cells`): canonical text that holds no time, host or path; every
 value of a cell is a str, int, float, bool, None, list or dict, which JSON keeps exactly (floats
@@ -78,7 +77,7 @@ class DetectorCells:
     `records`, `sweep` and `modes` as `oodrl.metrics.results._detector_results` returns them
     (the anomaly records in injector order, then the null records, one per mode; the sweep
     summaries by (injector, severity) in injector, then severity order; each injector's mode);
-    `tier_records` as `oodrl.metrics.tiers._detector_records` returns them.
+    `tier_records` as `oodrl.metrics.tiers.detector_records` returns them.
     """
 
     detector: str

@@ -20,9 +20,10 @@ if TYPE_CHECKING:
 #: benign tier, 100-stream cells, the training-conditional threshold, the audit set); 4 = SPEC
 #: §23/§24 (per-detector cells merged, tiers searched with common random numbers and planned
 #: verification, the time-aware per-stream rule beside the constant one, cusum_tv and
-#: action_consistency). Bump it whenever results stop being comparable with the previous
-#: version's.
-PROTOCOL_VERSION = 4
+#: action_consistency); 5 = a tier verified only once its interval reaches the target width
+#: (SPEC §23), tier results stored as JSON. Bump it whenever results stop being comparable with
+#: the previous version's.
+PROTOCOL_VERSION = 5
 #: What a results file without a stamp is read as: the protocol before stamps, SPEC §3-§12.
 UNSTAMPED_VERSION = 1
 

@@ -1,5 +1,7 @@
 """Detection at impact tiers and a per-stream false-alarm budget (SPEC §15): the tier_metrics
-stage's results, `reports/tier_results.yaml` (the stages that feed it: `oodrl.protocol.tiers`).
+stage's results, `reports/tier_results.json` (the file, and the loader that reads it or a
+protocol-4 project's `reports/tier_results.yaml`: `oodrl.metrics.tier_results`; the stages that
+feed it: `oodrl.protocol.tiers`).
 
 Per (detector, fault, tier) a record holds every metric of SPEC §6 against the matched clean
 twins of its `tiers.n_streams` faulty streams (per-episode matched AUROC kept for the
@@ -113,11 +115,16 @@ def _time_aware_fit(scores_dir: Path, detector: str):
     return fit_step_standardiser(list(scores)), {**fit, "reason": None}
 
 
-def _detector_records(params: Params, scores_dir: Path, impact_dir: Path, detector: str):
-    """One detector's records at every fault's reachable tiers, under both per-stream rules
-    (SPEC §24): the constant rule's `operating_point` and the time-aware rule's
+def detector_records(
+    params: Params, scores_dir: Path, impact_dir: Path, detector: str
+) -> list[dict[str, Any]]:
+    """One detector's tier records, the `records` of tier results that are its own: one per
+    fault (in `benchmark.injectors` order) and tier its tier scores hold, under both per-stream
+    rules (SPEC §24): the constant rule's `operating_point` and the time-aware rule's
     (`time_aware.operating_point`, None with `time_aware.reason` where the ID scores cannot
-    fit its standardiser), each rule's α curve, and both rules' per-stream detections."""
+    fit its standardiser), each rule's α curve, and both rules' per-stream detections. The
+    cells stage stores them (`oodrl.metrics.cells`); `assemble_tier_results` merges every
+    detector's."""
     from oodrl.metrics.aggregate import episode_metrics, summarise
     from oodrl.metrics.operating import per_stream_threshold
     from oodrl.metrics.time_aware import (
@@ -289,18 +296,18 @@ def _false_alarm_audit(records: list[dict]) -> dict[str, dict[str, Any]]:
 
 
 def compute_tier_results(params: Params, scores_dir: Path, impact_dir: Path) -> dict[str, Any]:
-    """tier_results.yaml's content from every benchmark detector's scores in `scores_dir` (the
+    """The tier results document from every benchmark detector's scores in `scores_dir` (the
     pipeline computes each detector's records in a stage of its own, `oodrl.metrics.cells`, and
     merges them with `assemble_tier_results`)."""
     from oodrl.parallel import ordered_map
 
     jobs = [(params, scores_dir, impact_dir, d) for d in params.benchmark.detectors]
-    parts = ordered_map(_detector_records, jobs, params.executor.resolved_workers)
+    parts = ordered_map(detector_records, jobs, params.executor.resolved_workers)
     return assemble_tier_results(params, [r for part in parts for r in part], impact_dir)
 
 
 def assemble_tier_results(params: Params, records: list[dict], impact_dir: Path) -> dict[str, Any]:
-    """tier_results.yaml's content from every detector's records: sorted, with the false-alarm
+    """The tier results document from every detector's records: sorted, with the false-alarm
     audit, the faults' impact tiers, the minimum detectable impacts and the protocol stamp."""
     from oodrl.metrics.stamp import protocol_stamp
 

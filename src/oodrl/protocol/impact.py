@@ -43,9 +43,10 @@ first step's fault with the first step's impact.
 
 Tiers (`oodrl.protocol.tier_search.calibrate_impact`, SPEC §19, §23). The tiers read on the
 coarse curve are where a tier search starts, never a tier: a continuous fault's tiers are
-searched for and verified by protocol 4's search (`oodrl.protocol.tier_search.search_fault`,
-common random numbers, a monotone fit of every probe, planned verification), the coarse curve
-guiding its probes; a
+searched for and verified by the tier search (`oodrl.protocol.tier_search.search_fault`:
+protocol 4's common random numbers, monotone fit of every probe and planned verification;
+protocol 5's rule that a tier is verified only once its CI reaches the target width), the
+coarse curve guiding its probes; a
 stepped fault's tiers are its steps, verified the same way (`verify_steps`). Each tier carries
 its verification (R̃ re-measured on fresh seeds, with its CI and episodes) and each fault the
 probes its search made.

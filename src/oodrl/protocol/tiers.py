@@ -10,8 +10,8 @@ The stages (one pipeline, `oodrl.suite.pipeline`):
 - `collect_calibration`, `collect_audit` and `collect_twins` collect the held-out clean
   streams (`oodrl.protocol.streams.HELDOUT_SETS`);
 - each detector's `score_clean` and `score@<fault>` score them (`oodrl.io.layout` names the stores);
-- `tier_metrics` writes `reports/tier_results.yaml` and `reports/tiers/`
-  (`oodrl.metrics.tiers`).
+- `tier_metrics` writes `reports/tier_results.json` (a protocol-4 pipeline holds
+  `reports/tier_results.yaml` until it is rebuilt) and `reports/tiers/` (`oodrl.metrics.tiers`).
 """
 
 from __future__ import annotations

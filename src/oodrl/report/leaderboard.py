@@ -134,12 +134,14 @@ class Versions:
 #: Where a maintainer keeps the previous protocol's complete leaderboard while a change of
 #: protocol is rebuilt (docs/how-to/change-protocol.md): ARCHIVE/protocol-<version>/.
 ARCHIVE = "pipeline/suite/archive"
-#: A results file's stamp line (top-level; `oodrl.metrics.stamp.protocol_stamp`).
-_STAMP_LINE = re.compile(r"^protocol_version:[ \t]*(\d+)[ \t]*$", re.MULTILINE)
+#: A results file's stamp line (top-level; `oodrl.metrics.stamp.protocol_stamp`):
+#: `protocol_version: 4` in YAML, `"protocol_version":5,` in the tier results' JSON, which
+#: writes a line per top-level key (`oodrl.metrics.tier_results.tier_results_text`).
+_STAMP_LINE = re.compile(r'^"?protocol_version"?:[ \t]*(\d+)[ \t]*,?$', re.MULTILINE)
 
 
 def _file_version(path: Path) -> int:
-    """A results file's protocol version from its stamp line (its YAML whole is seconds)."""
+    """A results file's protocol version from its stamp line (a YAML's whole is seconds)."""
     found = _STAMP_LINE.search(path.read_text()) if path.is_file() else None
     return int(found.group(1)) if found else UNSTAMPED_VERSION
 
@@ -173,6 +175,7 @@ def read_inputs(results: ResultsPaths) -> Inputs:
     from one record.
     """
     from oodrl.errors import StoreError
+    from oodrl.metrics.tier_results import load_tier_results
 
     documents: dict[str, Any] = {}
     cells: dict[str, dict[Cell, dict[str, list[float]]]] = {}
@@ -191,7 +194,10 @@ def read_inputs(results: ResultsPaths) -> Inputs:
                 raise StoreError(
                     f"{path}: results of {env_id} are missing; build its pipeline first."
                 )
-            document = yamlio.load(path.read_text())
+            # Tier results are JSON from protocol 5 (either form: `load_tier_results`).
+            document = (
+                load_tier_results(path) if path.suffix == ".json" else yamlio.load(path.read_text())
+            )
             documents[str(path)] = document
             uncertified.update(document.get(UNCERTIFIED) or ())
             hashes.setdefault((env_id, policy), set()).add(document.get("params_hash"))

@@ -19,7 +19,7 @@ def detector_cells(
     read. Without `impact_dir` (a pipeline of recorded data has no impact tiers, SPEC §18) it has
     no tier records."""
     from oodrl.metrics.results import _detector_results
-    from oodrl.metrics.tiers import _detector_records
+    from oodrl.metrics.tiers import detector_records
 
     if detector not in params.benchmark.detectors:
         raise ContractError(
@@ -30,7 +30,7 @@ def detector_cells(
     tier_records = (
         []
         if impact_dir is None
-        else _detector_records(params, Path(scores_dir), Path(impact_dir), detector)
+        else detector_records(params, Path(scores_dir), Path(impact_dir), detector)
     )
     return DetectorCells(detector, records, sweep, modes, tier_records)
 

@@ -12,20 +12,20 @@ if TYPE_CHECKING:
     from oodrl.metrics.leaderboard import Board
     from oodrl.report.leaderboard import ResultsPaths
 
-#: A pipeline's results at the headline severity (always there) and at the impact tiers
-#: (where the pipeline scores them), relative to its directory.
+#: A pipeline's results at the headline severity (always there), relative to its directory; its
+#: results at the impact tiers (where the pipeline scores them): `tier_results_path`.
 HEADLINE_RESULTS = Path("reports/results.yaml")
-TIER_RESULTS = Path("reports/tier_results.yaml")
 
 
 def results_files(root: Path) -> dict[tuple[str, str], list[Path]]:
     """(environment, policy) → the results files the leaderboard reads: each run's pipeline
     (`oodrl.suite.environments.suite_runs`)."""
+    from oodrl.metrics.tier_results import tier_results_path
     from oodrl.suite.environments import suite_runs
 
     files = {}
     for run, directory in suite_runs().items():
-        tiers = root / directory / TIER_RESULTS
+        tiers = tier_results_path(root / directory)
         files[run] = [
             root / directory / HEADLINE_RESULTS,
             *([tiers] if tiers.is_file() else []),

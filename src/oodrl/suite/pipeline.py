@@ -877,6 +877,7 @@ def rendered_suite(root: Path) -> str:
     # off the leaderboard unless it is added to oodrl.suite.environments's PIPELINE_DIRS (SPEC §18).
     suite = {(root / d).resolve() for d in suite_runs().values()}
     environments = [d for d in pipeline_dirs(root) if d.resolve() in suite]
+    from oodrl.metrics.tier_results import TIER_RESULTS
     from oodrl.report.leaderboard_page import PAGE_TEMPLATE
 
     # The page's template is code the stage runs, though no import names it.
@@ -889,7 +890,9 @@ def rendered_suite(root: Path) -> str:
             *(
                 project.relative(d.resolve() / "reports" / results)
                 for d in environments
-                for results in ("results.yaml", "tier_results.yaml")
+                # The suite is built once every pipeline is current (`oodrl.suite.run`): its
+                # tier results are then the JSON, never a protocol-4 pipeline's YAML.
+                for results in ("results.yaml", TIER_RESULTS.name)
             ),
         ],
         "params": [

@@ -40,8 +40,10 @@ from oodrl.errors import ConfigError, OodrlError
 NAME_PATTERN = re.compile(r"[A-Za-z][A-Za-z0-9_]*")
 SUITE_PARAMS = Path("pipeline") / "params.yaml"
 LEADERBOARD_JSON = "reports/leaderboard.json"
-#: The results files the leaderboard reads (oodrl.stages.leaderboard), relative to a pipeline.
-LEADERBOARD_INPUTS = ("reports/results.yaml", "reports/tier_results.yaml")
+#: The results files the leaderboard reads, relative to a pipeline, as the pipeline's stages
+#: write them (`oodrl.stages.leaderboard.HEADLINE_RESULTS`,
+#: `oodrl.metrics.tier_results.TIER_RESULTS`).
+LEADERBOARD_INPUTS = ("reports/results.yaml", "reports/tier_results.json")
 #: How many of the committed leaderboard's detectors are printed beside the new one.
 TOP = 5
 #: The identity the scratch commit is made with (the user's git may have none configured).
