@@ -5,6 +5,7 @@ byte. (On a Ray cluster that loses a node mid-task: tests/test_suite_run_ray.py.
 from __future__ import annotations
 
 import pytest
+import yaml
 from suite_repo import SUITE, checkout, locks
 from tiny_suite import assert_checking_line_then_the_error
 from typer.testing import CliRunner
@@ -123,3 +124,59 @@ def test_a_copy_keeps_in_its_locks_only_the_stages_its_pipelines_define(fresh_su
         listed = run(fresh_suite / project, "dvc", "stage", "list", "--name-only").stdout.split()
         assert sorted(kept) == sorted(name for name in listed if ":" not in name)
         assert set(kept) < set(committed)
+
+
+def test_a_commit_removes_the_tracked_outputs_its_build_no_longer_writes(tmp_path, monkeypatch):
+    """A protocol that renames an output (protocol 5's tier_results.json for protocol 4's
+    .yaml): the project's commit removes the previous file, tracked and recorded by HEAD's lock,
+    and keeps what the build still writes and what git never tracked."""
+    from oodrl.suite.run import _commit_project, superseded_outputs
+
+    def git(*args: str) -> str:
+        return run(tmp_path, "git", *args).stdout
+
+    project = tmp_path / "pipeline" / "env"
+    (project / "reports").mkdir(parents=True)
+    (project / "detectors" / "d").mkdir(parents=True)
+    old_lock = {"schema": "2.0", "stages": {
+        "tier_metrics": {"cmd": "x", "outs": [{"path": "reports/tier_results.yaml", "md5": "a"},
+                                              {"path": "reports/tiers", "md5": "b.dir"}]},
+        "collect": {"cmd": "y", "outs": [{"path": "data/id.zarr", "md5": "c.dir"}]},
+    }}  # fmt: skip
+    detector_lock = {"schema": "2.0", "stages": {
+        "cells": {"cmd": "z", "outs": [{"path": "../../cells/d.json", "md5": "d"}]}}}  # fmt: skip
+    (project / "dvc.lock").write_text(yaml.safe_dump(old_lock))
+    (project / "detectors" / "d" / "dvc.lock").write_text(yaml.safe_dump(detector_lock))
+    for name in ("reports/tier_results.yaml", "reports/tiers/tables.md", "reports/other.md"):
+        (project / name).parent.mkdir(parents=True, exist_ok=True)
+        (project / name).write_text(name)
+    git("init", "-q")
+    git("add", ".")
+    git("commit", "-q", "-m", "protocol 4")
+
+    new_lock = {"schema": "2.0", "stages": {
+        "tier_metrics": {"cmd": "x", "outs": [{"path": "reports/tier_results.json", "md5": "e"},
+                                              {"path": "reports/tiers", "md5": "f.dir"}]},
+    }}  # fmt: skip
+    files = {
+        "dvc.lock": yaml.safe_dump(new_lock).encode(),
+        "detectors/d/dvc.lock": yaml.safe_dump(detector_lock).encode(),
+        "reports/tier_results.json": b"{}\n",
+        "reports/tiers/tables.md": b"new",
+    }
+    assert superseded_outputs(tmp_path, "pipeline/env", files) == [
+        "pipeline/env/reports/tier_results.yaml"  # not data/id.zarr (untracked), nor the kept
+    ]
+    for name, data in files.items():
+        (project / name).write_bytes(data)
+    for key in ("GIT_AUTHOR_NAME", "GIT_AUTHOR_EMAIL", "GIT_COMMITTER_NAME", "GIT_COMMITTER_EMAIL"):
+        monkeypatch.setenv(key, "oodrl")  # the head commits in the caller's environment
+    _commit_project(tmp_path, "pipeline/env", files, "suite run: pipeline/env built")
+    assert not (project / "reports" / "tier_results.yaml").exists()
+    assert git("ls-files", "pipeline/env/reports").split() == [
+        "pipeline/env/reports/other.md",
+        "pipeline/env/reports/tier_results.json",
+        "pipeline/env/reports/tiers/tables.md",
+    ]
+    assert git("status", "--porcelain") == ""
+    assert superseded_outputs(tmp_path, "pipeline/env", files) == []  # HEAD's locks are the new

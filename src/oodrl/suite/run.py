@@ -666,15 +666,52 @@ COMMIT_SUBJECT = re.compile(r"^suite run: (\S+) built at protocol \d+ in (\d+) s
 
 def _commit_project(root: Path, project: str, files: Mapping[str, bytes], message: str) -> None:
     """Commit a restored project's files that git does not ignore (its locks, the results DVC
-    does not cache, the .gitignore files beside its outputs), those paths alone."""
+    does not cache, the .gitignore files beside its outputs), those paths alone, and the removal
+    of the files it no longer writes (`superseded_outputs`)."""
     paths = sorted(os.path.normpath(os.path.join(project, name)) for name in files)
     env = dict(os.environ)
     ignored = _spawn(["git", "check-ignore", "--", *paths], root, env).stdout.splitlines()
     paths = [path for path in paths if path not in set(ignored)]
     _run(root, {}, "git", "add", "--", *paths)
+    if superseded := superseded_outputs(root, project, files):
+        _run(root, {}, "git", "rm", "-q", "--", *superseded)  # staged: committed with the rest
+        paths = sorted([*paths, *superseded])
     if _spawn(["git", "diff", "--cached", "--quiet", "--", *paths], root, env).returncode == 0:
         return  # built as committed: nothing to commit
     _run(root, {}, "git", "commit", "-q", "-m", message, "--", *paths)
+
+
+def superseded_outputs(root: Path, project: str, files: Mapping[str, bytes]) -> list[str]:
+    """The git-tracked files that a project's committed locks (HEAD's version of each dvc.lock
+    among `files`) record as outputs and that its build no longer writes: a protocol that
+    renames an output (protocol 5's reports/tier_results.json for protocol 4's .yaml) leaves no
+    file of the previous version beside the new one, for a reader to find. Paths from `root`."""
+    from oodrl.io import yamlio
+
+    env = dict(os.environ)
+    written = {os.path.normpath(os.path.join(project, name)) for name in files}
+    recorded = set()
+    for name in files:
+        if os.path.basename(name) != "dvc.lock":
+            continue
+        lock = os.path.normpath(os.path.join(project, name))
+        shown = _spawn(["git", "show", f"HEAD:{Path(lock).as_posix()}"], root, env)
+        if shown.returncode != 0:  # a lock the project did not have at HEAD
+            continue
+        stages = (yamlio.load(shown.stdout) or {}).get("stages", {})
+        recorded |= {
+            os.path.normpath(os.path.join(os.path.dirname(lock), out["path"]))
+            for stage in stages.values()
+            for out in stage.get("outs", [])
+        }
+    gone = sorted(
+        path for path in recorded
+        if path not in written and not any(w.startswith(path + os.sep) for w in written)
+    )  # fmt: skip
+    if not gone:
+        return []
+    tracked = _spawn(["git", "ls-files", "--", *gone], root, env).stdout.splitlines()
+    return sorted(set(tracked))
 
 
 def _recorded_builds(root: Path) -> dict[str, float]:
