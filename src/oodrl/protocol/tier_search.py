@@ -82,13 +82,12 @@ b (numbered over the fault, whichever tier it goes to) from `seed + CRN_VERIFY_S
 b · verify_batch + j`, j < verify_batch: no two batches share a seed, and the clean reference
 holds max_verify_batches × verify_batch verification seeds (2,500 by default), not one block a
 tier. Its cost: π's clean return on each, measured once per run (`measure_reference`: 30 + 100
-+ 2,500 = 2,630 clean episodes by default, protocol 4's 430; and the random policy's 200, protocol
-4's 30), against about 17,000 faulty
-episodes of a nine-fault run's impact stages (300 coarse and, by the extrapolation above, about
-1,550 searched and verified a fault). Both blocks lie in [seed + 900,000, seed + 1,000,000):
-clear of the policy's, random policy's and protocol 3's blocks (100,000 seeds each), and of
-each other. Every draw is a function of `seed` and the evaluator, so the search is
-deterministic given both.
++ 2,500 = 2,630 clean episodes by default, protocol 4's 430; and the random policy's 200,
+protocol 4's 30), against about 17,000 faulty episodes of a nine-fault run's impact stages (300
+coarse and, by the extrapolation above, about 1,550 searched and verified a fault). Both
+blocks lie in [seed + 900,000, seed + 1,000,000): clear of the policy's, random policy's and
+protocol 3's blocks (100,000 seeds each), and of each other. Every draw is a function of `seed`
+and the evaluator, so the search is deterministic given both.
 """
 
 from __future__ import annotations
