@@ -39,6 +39,16 @@ def test_the_goals_test_of_a_fresh_row(budget, verdict, level_in_ci, difference,
     assert budget.passes(row) is passes
 
 
+def _with_root_check(rows: list[dict], tmp_path) -> str:
+    """The script's output with `rows` as the root's fresh check (fresh_check.py's JSON)."""
+    fresh = tmp_path / "fresh.json"
+    fresh.write_text(json.dumps({"tiers": {"rows": rows}}))
+    return subprocess.run(
+        [sys.executable, str(SCRIPT), "--fresh", f"root={fresh}"],
+        capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+
+
 def test_the_table_has_a_row_per_run_and_counts_shared_records_once(budget, tmp_path):
     runs = budget.runs()
     # One fresh row per verified tier of the root's first fault: each passes.
@@ -53,12 +63,7 @@ def test_the_table_has_a_row_per_run_and_counts_shared_records_once(budget, tmp_
          "verdict": "within 0.02", "level_in_ci": True, "difference": 0.0}
         for name in verified
     ]  # fmt: skip
-    fresh = tmp_path / "fresh.json"
-    fresh.write_text(json.dumps({"tiers": {"rows": rows}}))
-    out = subprocess.run(
-        [sys.executable, str(SCRIPT), "--fresh", f"root={fresh}"],
-        capture_output=True, text=True, check=True,
-    ).stdout  # fmt: skip
+    out = _with_root_check(rows, tmp_path)
     table = [line for line in out.splitlines() if line.startswith("| ")]
     assert [line.split(" | ")[0][2:] for line in table[1 : len(runs) + 1]] == list(runs)
     # Runs whose records are another's byte for byte count once (during a change of protocol
@@ -92,12 +97,7 @@ def test_a_check_of_other_records_is_left_out_and_named(tmp_path):
     fault = sorted(load_benchmark("verification_budget").runs()["root"].glob("*.yaml"))[0].stem
     rows = [{"fault": fault, "tier": "severe", "severity": 12.5, "verdict": "within 0.02",
              "level_in_ci": True, "difference": 0.0}]  # fmt: skip
-    fresh = tmp_path / "fresh.json"
-    fresh.write_text(json.dumps({"tiers": {"rows": rows}}))
-    out = subprocess.run(
-        [sys.executable, str(SCRIPT), "--fresh", f"root={fresh}"],
-        capture_output=True, text=True, check=True,
-    ).stdout  # fmt: skip
+    out = _with_root_check(rows, tmp_path)
     assert "Verified tiers on fresh episodes (0 runs):" in out
     assert out.rstrip().endswith("(rebuilt since): root.")
 
