@@ -27,7 +27,11 @@ With --fresh, each RUN's verified tiers are cross-tabulated with the verdict of
 `benchmarks/fresh_check.py --json` on fresh episodes (with no RUN=PATH, the checks recorded in
 benchmarks/fresh/, RUN.json each), by the goal's test: the level inside the fresh 95% interval
 or within 0.03 of the fresh estimate; a stepped tier (its verdict ends in "(step)") passes
-unless its interval misses its band. Reads files only: no simulator runs.
+unless its interval misses its band. Each verified tier that fails is then listed with what
+would have settled it (the goal asks, where a tier fails, how many episodes the search would
+need): the verification episodes for its interval to lie inside level ± tolerance at its
+estimate, n (h / (tolerance − |R̃ − level|))², or none where the estimate itself is off that
+band (the search must probe another severity). Reads files only: no simulator runs.
 """
 
 from __future__ import annotations
@@ -102,12 +106,47 @@ def passes(row: dict) -> bool:
     return row["level_in_ci"] or abs(row["difference"]) <= GOAL_TOLERANCE
 
 
+def episodes_inside_band(verification: dict, level: float, tolerance: float) -> int | None:
+    """Verification episodes for the interval to lie inside level ± tolerance (shown to hold)
+    at the verified estimate, or None where the estimate itself is off that band (no number of
+    episodes at this severity would do: the search must probe another)."""
+    room = tolerance - abs(verification["normalised"] - level)
+    if room <= 0:
+        return None
+    return max(
+        verification["episodes"],
+        round(verification["episodes"] * (verification["half_width"] / room) ** 2),
+    )
+
+
+def failure_lines(failures: list[tuple[str, dict, dict, dict]]) -> list[str]:
+    """One row per verified tier failing the goal's test: its verification, the fresh
+    estimate, and the episodes that would have shown it to hold (`episodes_inside_band`)."""
+    lines = ["", "Verified tiers failing the goal's test:", "",
+             "| run | fault | tier | level | verified R̃ ± half-width (episodes) | fresh R̃ [95% CI] "
+             "(episodes) | verification episodes to lie inside level ± tolerance |",
+             "|---|---|---|---:|---:|---:|---:|"]  # fmt: skip
+    for run, row, tier, search in failures:
+        verification = tier["verification"]
+        needed = episodes_inside_band(verification, tier["level"], search["tolerance"])
+        settle = (f"{needed:,}" if needed is not None else
+                  f"none: the estimate is off ±{search['tolerance']:g}, the search must probe "
+                  "another severity")  # fmt: skip
+        low, high = row["ci"]
+        lines.append(f"| {run} | {row['fault']} | {row['tier']} | {tier['level']:g} | "
+                     f"{verification['normalised']:.3f} ± {verification['half_width']:.3f} "
+                     f"({verification['episodes']:,}) | {row['normalised']:.3f} [{low:.3f}, "
+                     f"{high:.3f}] ({row['n_episodes']}) | {settle} |")  # fmt: skip
+    return lines
+
+
 def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) -> list[str]:
     """Verified tiers by whether their verification met its target, and how many of each fail
-    the goal's test on fresh episodes (`checks`: run name and fresh_check.py JSON). A check of
-    other impact records than the committed ones (a tier's severity differs: the run was
-    rebuilt since, e.g. at a new protocol version) is left out and named."""
+    the goal's test on fresh episodes (`checks`: run name and fresh_check.py JSON), then the
+    failing ones. A check of other impact records than the committed ones (a tier's severity
+    differs: the run was rebuilt since, e.g. at a new protocol version) is left out and named."""
     outcome: Counter = Counter()
+    failures = []
     used, other = [], []
     for run, path in checks:
         found = []
@@ -116,21 +155,25 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
                 continue
             record = load(directories[run] / f"{row['fault']}.yaml")
             tier = record["faults"][row["fault"]]["tiers"][row["tier"]]
-            found.append((row, tier))
-        if any(tier["severity"] != row["severity"] for row, tier in found):
+            found.append((row, tier, record["search"]))
+        if any(tier["severity"] != row["severity"] for row, tier, _ in found):
             other.append(run)
             continue
         used.append(run)
-        for row, tier in found:
+        for row, tier, search in found:
             verification = tier.get("verification") or {}
             if verification.get("verified"):
                 met = "target met" if verification["ci_target_met"] else "target not met"
                 outcome[met, passes(row)] += 1
+                if not passes(row):
+                    failures.append((run, row, tier, search))
     lines = ["", f"Verified tiers on fresh episodes ({len(used)} runs):", "",
              "| verification | tiers | fail the goal's test |", "|---|---:|---:|"]  # fmt: skip
     for met in ("target met", "target not met"):
         total = outcome[met, True] + outcome[met, False]
         lines.append(f"| {met} | {total} | {outcome[met, False]} |")
+    if failures:
+        lines += failure_lines(failures)
     if other:
         lines += ["", f"Left out, checks of other impact records than the committed ones (rebuilt "
                       f"since): {', '.join(other)}."]  # fmt: skip

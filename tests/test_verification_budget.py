@@ -102,6 +102,36 @@ def test_a_check_of_other_records_is_left_out_and_named(tmp_path):
     assert out.rstrip().endswith("(rebuilt since): root.")
 
 
+def test_the_episodes_that_would_show_a_tier_inside_its_band(budget):
+    verification = {"episodes": 100, "half_width": 0.02, "normalised": 0.94}
+    # 0.01 of room on either side of the estimate: the half-width halved, four times the episodes.
+    assert budget.episodes_inside_band(verification, 0.95, 0.02) == 400
+    # An interval already inside the band needs no more than it had.
+    assert budget.episodes_inside_band(verification, 0.94, 0.03) == 100
+    # An estimate off the band is not settled by episodes at this severity.
+    assert budget.episodes_inside_band(verification, 0.97, 0.02) is None
+
+
+def test_a_verified_tier_failing_on_fresh_episodes_is_listed(budget, tmp_path):
+    fault, name, tier, record = next(
+        (path.stem, name, tier, record)
+        for path in sorted(budget.runs()["root"].glob("*.yaml"))
+        for record in [budget.load(path)]
+        for name, tier in record["faults"][path.stem]["tiers"].items()
+        if (tier.get("verification") or {}).get("verified")
+    )  # fmt: skip
+    row = {"fault": fault, "tier": name, "severity": tier["severity"], "n_episodes": 150,
+           "normalised": tier["level"] - 0.05, "ci": [tier["level"] - 0.08, tier["level"] - 0.04],
+           "verdict": "misses by -0.050", "level_in_ci": False, "difference": -0.05}  # fmt: skip
+    out = _with_root_check([row], tmp_path)
+    assert "| target met | 1 | 1 |" in out or "| target not met | 1 | 1 |" in out
+    listed = out.splitlines()[-1].split(" | ")
+    assert listed[:4] == ["| root", fault, name, f"{tier['level']:g}"]
+    needed = budget.episodes_inside_band(tier["verification"], tier["level"],
+                                         record["search"]["tolerance"])  # fmt: skip
+    assert listed[-1].startswith(f"{needed:,} |" if needed is not None else "none: ")
+
+
 def test_an_unknown_run_is_a_usage_error():
     done = subprocess.run(
         [sys.executable, str(SCRIPT), "--fresh", "nowhere=missing.json"],
