@@ -1,7 +1,7 @@
 """Fresh-data check (SPEC §19; issue 39, item 7): do a built pipeline's promises hold on seeds it
 never used?
 
-    python benchmarks/fresh_check.py --pipeline P [--streams N] [--episodes M]
+    python benchmarks/fresh_check.py --pipeline P [--streams N] [--episodes M] [--random-episodes R]
         [--seed-offset S] [--detectors D ...] [--faults F ...] [--json OUT] [--workers W]
         [--batch-streams B]
 
@@ -35,7 +35,11 @@ It rolls FRESH seeds and prints two markdown tables (`--json OUT` writes them to
     R̃ = (R(σ) − R_rand) / (R_clean − R_rand) at the committed severity σ, measured on M fresh
     whole episodes with the fault live from step 0 (`oodrl.protocol.impact.faulty_returns`), R_clean
     and R_rand on M fresh episodes each (`clean_returns`, `random_policy_returns`), the episode
-    length the impact document's `horizon`. Its 95% interval is the impact stage's percentile
+    length the impact document's `horizon`. R_rand is measured on R fresh episodes (default
+    1,000): the random policy's mean return anchors every R̃ of a run at once, so its noise moves
+    all of them together (150 episodes of Pendulum's random policy sat 57 above the impact
+    stage's 200, lowering each fresh R̃ of the three Pendulum runs by up to 0.016), and its
+    episodes are cheap. Its 95% interval is the impact stage's percentile
     bootstrap (`metrics.n_boot` replicates; the policy's episodes resampled jointly over the
     clean run and the fault, the random policy's on their own). The verdict judges the interval
     against the band level ± 0.02, since M episodes measure R̃ only to within their interval:
@@ -52,7 +56,7 @@ fitted detectors as the pipeline saved them; nothing here re-implements a detect
 Seeds. With the pipeline's `seed` s and the offset S (default 3,000,000), the check uses
 s + S + j (j < N) for the clean streams, s + S + POLICY_SEED_OFFSET + j (j < M) for the
 policy's whole episodes (the clean run and every fault share them, as in the impact stage) and
-s + S + RANDOM_SEED_OFFSET + j for the random policy's; the faults draw from
+s + S + RANDOM_SEED_OFFSET + j (j < R) for the random policy's; the faults draw from
 `injector_rng(s + S, fault, j)`. An offset whose seeds overlap any set of the protocol is
 refused (exit 2, one line): the ID streams s + i, the evaluation streams
 s + data.eval_seed_offset + j, the tier calibration streams s + tiers.calibration_seed_offset
@@ -159,7 +163,9 @@ def protocol_ranges(params) -> list[tuple[str, range]]:
     return ranges
 
 
-def fresh_ranges(params, offset: int, n_streams: int, n_episodes: int) -> list[tuple[str, range]]:
+def fresh_ranges(
+    params, offset: int, n_streams: int, n_episodes: int, n_random: int
+) -> list[tuple[str, range]]:
     """The seeds the check uses (see the module docstring); empty sets left out."""
     from oodrl.config import POLICY_SEED_OFFSET, RANDOM_SEED_OFFSET
 
@@ -169,16 +175,18 @@ def fresh_ranges(params, offset: int, n_streams: int, n_episodes: int) -> list[t
         ("fresh policy episodes", range(base + POLICY_SEED_OFFSET,
                                         base + POLICY_SEED_OFFSET + n_episodes)),
         ("fresh random-policy episodes", range(base + RANDOM_SEED_OFFSET,
-                                               base + RANDOM_SEED_OFFSET + n_episodes)),
+                                               base + RANDOM_SEED_OFFSET + n_random)),
     ]  # fmt: skip
     return [(name, seeds) for name, seeds in sets if len(seeds)]
 
 
-def check_seeds(params, offset: int, n_streams: int, n_episodes: int) -> list[tuple[str, range]]:
+def check_seeds(
+    params, offset: int, n_streams: int, n_episodes: int, n_random: int
+) -> list[tuple[str, range]]:
     """The fresh seed sets, or a ConfigError naming the first overlap."""
     from oodrl.errors import ConfigError
 
-    fresh = fresh_ranges(params, offset, n_streams, n_episodes)
+    fresh = fresh_ranges(params, offset, n_streams, n_episodes, n_random)
     hint = f"choose an offset whose seeds avoid every protocol set (default {DEFAULT_SEED_OFFSET})"
     for i, (name, seeds) in enumerate(fresh):
         if seeds.start < 0:
@@ -393,7 +401,9 @@ def bootstrap_normalised(faulty, clean, random, n_boot: int, ci: float, seed: in
     return float(low), float(high)
 
 
-def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, workers: int):
+def tier_check(
+    params, faults, tiers, horizon, base_seed: int, n_episodes: int, n_random: int, workers: int
+):
     """R_clean, R_rand and, per reachable (fault, tier), R̃ at the committed severity."""
     from oodrl.envs import ENVIRONMENTS
     from oodrl.policies.load import load_policy
@@ -410,11 +420,11 @@ def tier_check(params, faults, tiers, horizon, base_seed: int, n_episodes: int, 
     adapter = ENVIRONMENTS.get(params.env.id)()
     policy = load_policy(Path(POLICY), mode=params.policy.mode)
     horizon = int(horizon or episode_limit(adapter))
-    say(f"rolling {n_episodes} fresh whole episodes (horizon {horizon}) clean and random")
+    say(f"rolling {n_episodes} fresh whole episodes (horizon {horizon}) clean, {n_random} random")
     started = time.perf_counter()
     clean = clean_returns(adapter, policy, n_episodes, seed=base_seed, horizon=horizon,
                           workers=workers)  # fmt: skip
-    random = random_policy_returns(adapter, n_episodes, seed=base_seed, horizon=horizon)
+    random = random_policy_returns(adapter, n_random, seed=base_seed, horizon=horizon)
     say(f"  R_clean {clean.mean():.2f}, R_rand {random.mean():.2f} "
         f"({time.perf_counter() - started:.0f} s)")  # fmt: skip
     injectors = live_injectors(params, faults, Path(ID_STORE))
@@ -562,6 +572,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             f"--streams and --batch-streams must be >= 0 and --episodes 0 or >= 2; got "
             f"{args.streams}, {args.batch_streams} and {args.episodes}."
         )
+    if args.random_episodes < 2:
+        raise ConfigError(f"--random-episodes must be >= 2; got {args.random_episodes}.")
+    n_random = args.random_episodes if args.episodes else 0
     pipeline = Path(args.pipeline)
     if not (pipeline / "params.yaml").is_file():
         raise ConfigError(f"--pipeline {pipeline}: no params.yaml there; a pipeline directory is "
@@ -569,7 +582,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     json_out = Path(args.json).resolve() if args.json else None
     os.chdir(pipeline)  # as the stage commands run: paths and restore hints read from there
     params = load_params(Path("params.yaml"))
-    fresh = check_seeds(params, args.seed_offset, args.streams, args.episodes)
+    fresh = check_seeds(params, args.seed_offset, args.streams, args.episodes, n_random)
 
     def pick(given, allowed, flag):
         unknown = [n for n in given or [] if n not in allowed]
@@ -612,7 +625,9 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             params, detectors, thresholds, alpha, fresh[0][1], workers, args.batch_streams
         )
     if args.episodes:
-        summary, rows = tier_check(params, faults, tiers, horizon, base, args.episodes, workers)
+        summary, rows = tier_check(
+            params, faults, tiers, horizon, base, args.episodes, n_random, workers
+        )
         result["tiers"] = {"returns": summary, "rows": rows}
     text = report(result)
     print(text, flush=True)
@@ -627,6 +642,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--streams", type=int, default=400, help="fresh clean streams (0: skip)")
     parser.add_argument("--episodes", type=int, default=150,
                         help="fresh whole episodes per condition (0: skip)")  # fmt: skip
+    parser.add_argument("--random-episodes", type=int, default=1000,
+                        help="fresh random-policy episodes for R_rand")  # fmt: skip
     parser.add_argument("--seed-offset", type=int, default=DEFAULT_SEED_OFFSET)
     parser.add_argument("--detectors", nargs="+", help="a subset of benchmark.detectors")
     parser.add_argument("--faults", nargs="+", help="a subset of benchmark.injectors")

@@ -22,7 +22,7 @@ pytestmark = pytest.mark.slow
 
 SCRIPT = BENCHMARKS / "fresh_check.py"
 FAULTS = ["stuck_actuator"]
-STREAMS, EPISODES = 7, 3
+STREAMS, EPISODES, RANDOM_EPISODES = 7, 3, 4
 
 
 @pytest.fixture
@@ -57,7 +57,7 @@ def table(stdout: str, heading: str) -> list[dict[str, str]]:
 def test_tables_count_what_was_asked(pipeline, tmp_path):
     out = tmp_path / "fresh.json"
     done = fresh_check(pipeline, "--streams", str(STREAMS), "--episodes", str(EPISODES),
-                       "--json", str(out))  # fmt: skip
+                       "--random-episodes", str(RANDOM_EPISODES), "--json", str(out))  # fmt: skip
     assert done.returncode == 0, done.stderr
     stdout = done.stdout
     assert f"## False alarms: {STREAMS} fresh clean streams of 60 steps" in stdout
@@ -77,6 +77,7 @@ def test_tables_count_what_was_asked(pipeline, tmp_path):
 
     assert f"{EPISODES} fresh whole episodes per condition" in stdout
     assert f"({EPISODES} episodes), R_rand" in stdout
+    assert f"({RANDOM_EPISODES} episodes), episodes of up to" in stdout
     tiers = table(stdout, "Tiers")
     impact = yaml.safe_load((pipeline / "data/impact/stuck_actuator.yaml").read_text())
     committed = impact["faults"]["stuck_actuator"]["tiers"]
@@ -94,7 +95,7 @@ def test_tables_count_what_was_asked(pipeline, tmp_path):
     result = json.loads(out.read_text())
     assert [r["n_streams"] for r in result["false_alarms"]] == [STREAMS] * 2 * len(DETECTORS)
     assert result["tiers"]["returns"]["n_clean"] == EPISODES
-    assert result["tiers"]["returns"]["n_random"] == EPISODES
+    assert result["tiers"]["returns"]["n_random"] == RANDOM_EPISODES
     measured = [r for r in result["tiers"]["rows"] if r["severity"] != "unreachable"]
     assert measured and all(r["n_episodes"] == EPISODES for r in measured)
     # The thresholds are the committed ones of the tier results.
@@ -136,6 +137,15 @@ def test_an_offset_onto_protocol_seeds_is_refused(
     assert len(lines) == 1
     assert lines[0].startswith(f"error: --seed-offset {offset}: ")
     assert overlapped in lines[0]
+
+
+def test_too_few_random_episodes_are_refused(script, capsys):
+    """R_rand needs an interval: fewer than two random-policy episodes is one line, exit 2,
+    before anything is read."""
+    code = script.main(["--pipeline", ".", "--random-episodes", "1"])
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ""
+    assert err.strip().splitlines() == ["error: --random-episodes must be >= 2; got 1."]
 
 
 def test_streams_scored_in_batches_score_as_in_one_call(pipeline, script, monkeypatch):
