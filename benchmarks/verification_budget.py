@@ -25,9 +25,14 @@ once in the total.
 
 With --fresh, each RUN's verified tiers are cross-tabulated with the verdict of
 `benchmarks/fresh_check.py --json` on fresh episodes (with no RUN=PATH, the checks recorded in
-benchmarks/fresh/, RUN.json each), by the goal's test: the level inside the fresh 95% interval
-or within 0.03 of the fresh estimate; a stepped tier (its verdict ends in "(step)") passes
-unless its interval misses its band. Each verified tier that fails is then listed with what
+benchmarks/fresh/, RUN.json each; the checks of records since rebuilt are kept in
+benchmarks/fresh/protocol-4/), by the protocol version each run was built at and the goal's
+test: the level inside the fresh 95% interval or within 0.03 of the fresh estimate; a stepped
+tier (its verdict ends in "(step)") passes unless its interval misses its band. Beside the
+failures, those expected by chance alone were every tier exactly at its level: the test fails
+such a tier with probability P(|Z| > max(1.96, 0.03 / s)) (s the fresh estimate's spread, its
+interval's width / 3.92), at most 5% a tier, so a zero is not what a perfect search promises
+across a hundred tiers. Each verified tier that fails is then listed with what
 would have settled it (the goal asks, where a tier fails, how many episodes the search would
 need): the verification episodes for its interval to lie inside level ± tolerance at its
 estimate, n (h / (tolerance − |R̃ − level|))², or none where the estimate itself is off that
@@ -39,6 +44,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 from collections import Counter
 from pathlib import Path
 
@@ -55,6 +61,14 @@ def runs() -> dict[str, Path]:
     for directory in sorted((ROOT / "pipeline").glob("*/data/impact")):
         found[directory.parents[1].name] = directory
     return found
+
+
+def built_version(project: Path) -> int:
+    """The protocol version of a project's committed results: the rule its tiers were verified
+    by."""
+    from oodrl.suite.migration import built_version
+
+    return built_version(project)
 
 
 def load(path: Path) -> dict:
@@ -106,6 +120,18 @@ def passes(row: dict) -> bool:
     return row["level_in_ci"] or abs(row["difference"]) <= GOAL_TOLERANCE
 
 
+def chance_of_failing(row: dict) -> float:
+    """The probability that the goal's test fails a tier whose true R̃ is exactly its level,
+    from the spread of the fresh estimate (its interval's width as a normal one's): the test
+    fails when the level is outside the fresh interval AND over 0.03 from the estimate, so at
+    most 5% a tier. A stepped tier's band is wide: taken as 0."""
+    if row["verdict"].endswith("(step)"):
+        return 0.0
+    low, high = row["ci"]
+    spread = (high - low) / (2 * 1.959964)
+    return math.erfc(max(1.959964, GOAL_TOLERANCE / spread) / math.sqrt(2))
+
+
 def episodes_inside_band(verification: dict, level: float, tolerance: float) -> int | None:
     """Verification episodes for the interval to lie inside level ± tolerance (shown to hold)
     at the verified estimate, or None where the estimate itself is off that band (no number of
@@ -142,10 +168,13 @@ def failure_lines(failures: list[tuple[str, dict, dict, dict]]) -> list[str]:
 
 def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) -> list[str]:
     """Verified tiers by whether their verification met its target, and how many of each fail
-    the goal's test on fresh episodes (`checks`: run name and fresh_check.py JSON), then the
-    failing ones. A check of other impact records than the committed ones (a tier's severity
-    differs: the run was rebuilt since, e.g. at a new protocol version) is left out and named."""
+    the goal's test on fresh episodes (`checks`: run name and fresh_check.py JSON), by the
+    protocol version the run was built at, beside how many would fail by chance alone were each
+    exactly at its level (`chance_of_failing`), then the failing ones. A check of other impact
+    records than the committed ones (a tier's severity differs: the run was rebuilt since, e.g.
+    at a new protocol version) is left out and named."""
     outcome: Counter = Counter()
+    chance: Counter = Counter()
     failures = []
     used, other = [], []
     for run, path in checks:
@@ -160,18 +189,22 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
             other.append(run)
             continue
         used.append(run)
+        version = built_version(directories[run].parents[1])
         for row, tier, search in found:
             verification = tier.get("verification") or {}
             if verification.get("verified"):
-                met = "target met" if verification["ci_target_met"] else "target not met"
+                met = f"protocol {version}, target " + ("met" if verification["ci_target_met"]
+                                                        else "not met")  # fmt: skip
                 outcome[met, passes(row)] += 1
+                chance[met] += chance_of_failing(row)
                 if not passes(row):
                     failures.append((run, row, tier, search))
     lines = ["", f"Verified tiers on fresh episodes ({len(used)} runs):", "",
-             "| verification | tiers | fail the goal's test |", "|---|---:|---:|"]  # fmt: skip
-    for met in ("target met", "target not met"):
+             "| verification | tiers | fail the goal's test | expected to fail were each at its "
+             "level |", "|---|---:|---:|---:|"]  # fmt: skip
+    for met in sorted(chance, reverse=True):  # the newest protocol first
         total = outcome[met, True] + outcome[met, False]
-        lines.append(f"| {met} | {total} | {outcome[met, False]} |")
+        lines.append(f"| {met} | {total} | {outcome[met, False]} | {chance[met]:.1f} |")
     if failures:
         lines += failure_lines(failures)
     if other:
