@@ -31,23 +31,21 @@ It rolls FRESH seeds and prints two markdown tables (`--json OUT` writes them to
     tier_metrics stage fits it on); a detector whose records hold no time-aware operating point
     (fewer than 300 ID scores) has a constant-rule row only.
 (b) Tiers: per fault and every tier its impact document reaches (a tier whose severity is
-    "unreachable" is listed, not measured), the normalised return
-    R̃ = (R(σ) − R_rand) / (R_clean − R_rand) at the committed severity σ, measured on M fresh
-    whole episodes with the fault live from step 0 (`oodrl.protocol.impact.faulty_returns`), R_clean
-    and R_rand on M fresh episodes each (`clean_returns`, `random_policy_returns`), the episode
-    length the impact document's `horizon`. R_rand is measured on R fresh episodes (default
-    1,000): the random policy's mean return anchors every R̃ of a run at once, so its noise moves
-    all of them together (150 episodes of Pendulum's random policy sat 57 above the impact
-    stage's 200, lowering each fresh R̃ of the three Pendulum runs by up to 0.016), and its
-    episodes are cheap. Its 95% interval is the impact stage's percentile
-    bootstrap (`metrics.n_boot` replicates; the policy's episodes resampled jointly over the
-    clean run and the fault, the random policy's on their own). The verdict judges the interval
-    against the band level ± 0.02, since M episodes measure R̃ only to within their interval:
-    "within 0.02" iff the interval lies inside the band (shown to hold), "misses by ±d" iff it
-    lies wholly outside (shown to fail; d = R̃ − level), else "undecided at M episodes" (the
-    point estimate may fall either side; more episodes decide it). A stepped fault's tier is a
-    step, not a level the search can hit (SPEC §19): its band is [the next tier's level (0.5
-    after severe), its own level] widened by 0.02, judged the same way and marked "(step)".
+    "unreachable" is listed, not measured), the normalised return R̃ = (R(σ) − R_rand) / (R_clean −
+    R_rand) at the committed severity σ, measured on M fresh whole episodes with the fault live from
+    step 0 (`oodrl.protocol.impact.faulty_returns`), R_clean on M fresh episodes (`clean_returns`)
+    and R_rand on R (`random_policy_returns`, default 1,000: the random policy's mean return anchors
+    every R̃ of a run at once, so its noise moves all of them together, and its episodes are cheap;
+    150 of Pendulum's sat 57 above the impact stage's 200, lowering each fresh R̃ of the three
+    Pendulum runs by up to 0.016), the episode length the impact document's `horizon`. Its 95%
+    interval is the impact stage's percentile bootstrap (`metrics.n_boot` replicates; the policy's
+    episodes resampled jointly over the clean run and the fault, the random policy's on their own).
+    The verdict judges the interval against the band level ± 0.02, since M episodes measure R̃ only
+    to within their interval: "within 0.02" iff the interval lies inside the band (shown to hold),
+    "misses by ±d" iff it lies wholly outside (shown to fail; d = R̃ − level), else "undecided at M
+    episodes" (the point estimate may fall either side; more episodes decide it). A stepped fault's
+    tier is a step, not a level the search can hit (SPEC §19): its band is [the next tier's level
+    (0.5 after severe), its own level] widened by 0.02, judged the same way and marked "(step)".
 
 Episodes are collected by the project's collector (`oodrl.envs.collect.collect`, the impact
 functions) and scored by the project's scoring code (`oodrl.protocol.scoring.score_set`), with the

@@ -53,6 +53,8 @@ ROOT = Path(__file__).resolve().parents[1]
 FRESH = ROOT / "benchmarks" / "fresh"
 #: The fresh-data goal's tolerance (issue 61): a tier passes within 0.03 of the fresh estimate.
 GOAL_TOLERANCE = 0.03
+#: The standard normal's 97.5% quantile: a 95% interval is the estimate ± Z95 spreads.
+Z95 = 1.959964
 
 
 def runs() -> dict[str, Path]:
@@ -61,14 +63,6 @@ def runs() -> dict[str, Path]:
     for directory in sorted((ROOT / "pipeline").glob("*/data/impact")):
         found[directory.parents[1].name] = directory
     return found
-
-
-def built_version(project: Path) -> int:
-    """The protocol version of a project's committed results: the rule its tiers were verified
-    by."""
-    from oodrl.suite.migration import built_version
-
-    return built_version(project)
 
 
 def load(path: Path) -> dict:
@@ -128,8 +122,8 @@ def chance_of_failing(row: dict) -> float:
     if row["verdict"].endswith("(step)"):
         return 0.0
     low, high = row["ci"]
-    spread = (high - low) / (2 * 1.959964)
-    return math.erfc(max(1.959964, GOAL_TOLERANCE / spread) / math.sqrt(2))
+    spread = (high - low) / (2 * Z95)
+    return math.erfc(max(Z95, GOAL_TOLERANCE / spread) / math.sqrt(2))
 
 
 def episodes_inside_band(verification: dict, level: float, tolerance: float) -> int | None:
@@ -173,6 +167,8 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
     exactly at its level (`chance_of_failing`), then the failing ones. A check of other impact
     records than the committed ones (a tier's severity differs: the run was rebuilt since, e.g.
     at a new protocol version) is left out and named."""
+    from oodrl.suite.migration import built_version  # the rule a run's tiers were verified by
+
     outcome: Counter = Counter()
     chance: Counter = Counter()
     failures = []
