@@ -164,15 +164,16 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
     """Verified tiers by whether their verification met its target, and how many of each fail
     the goal's test on fresh episodes (`checks`: run name and fresh_check.py JSON), by the
     protocol version the run was built at, beside how many would fail by chance alone were each
-    exactly at its level (`chance_of_failing`), then the failing ones. A check of other impact
-    records than the committed ones (a tier's severity differs: the run was rebuilt since, e.g.
-    at a new protocol version) is left out and named."""
+    exactly at its level (`chance_of_failing`), then the failing ones; a run whose records are
+    another's byte for byte counts once. A check of other impact records than the committed ones
+    (a tier's severity differs: the run was rebuilt since, e.g. at a new protocol version) is left
+    out and named."""
     from oodrl.suite.migration import built_version  # the rule a run's tiers were verified by
 
     outcome: Counter = Counter()
     chance: Counter = Counter()
     failures = []
-    used, other = [], []
+    used, other, counted = [], [], set()
     for run, path in checks:
         found = []
         for row in json.loads(path.read_text())["tiers"]["rows"]:
@@ -185,6 +186,9 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
             other.append(run)
             continue
         used.append(run)
+        if (key := digest(directories[run])) in counted:
+            continue  # another run's records byte for byte (the root's, the suite's LunarLander)
+        counted.add(key)
         version = built_version(directories[run].parents[1])
         for row, tier, search in found:
             verification = tier.get("verification") or {}
