@@ -32,11 +32,14 @@ tier (its verdict ends in "(step)") passes unless its interval misses its band. 
 failures, those expected by chance alone were every tier exactly at its level: the test fails
 such a tier with probability P(|Z| > max(1.96, 0.03 / s)) (s the fresh estimate's spread, its
 interval's width / 3.92), at most 5% a tier, so a zero is not what a perfect search promises
-across a hundred tiers. Each verified tier that fails is then listed with what
-would have settled it (the goal asks, where a tier fails, how many episodes the search would
-need): the verification episodes for its interval to lie inside level ± tolerance at its
-estimate, n (h / (tolerance − |R̃ − level|))², or none where the estimate itself is off that
-band (the search must probe another severity). Reads files only: no simulator runs.
+across a hundred tiers; and those expected were each tier's true R̃ where its verification
+measured it (the fresh estimate spread by both intervals): the search aims at the level, so a
+search whose intervals are as wide as they should be shows a count between the two. Each
+verified tier that fails is then listed with what would have settled it (the goal asks, where
+a tier fails, how many episodes the search would need): the verification episodes for its
+interval to lie inside level ± tolerance at its estimate, n (h / (tolerance − |R̃ − level|))²,
+or none where the estimate itself is off that band (the search must probe another severity).
+Reads files only: no simulator runs.
 """
 
 from __future__ import annotations
@@ -126,6 +129,24 @@ def chance_of_failing(row: dict) -> float:
     return math.erfc(max(Z95, GOAL_TOLERANCE / spread) / math.sqrt(2))
 
 
+def chance_of_failing_where_verified(row: dict, verification: dict, level: float) -> float:
+    """The probability that the goal's test fails a tier whose true R̃ is where its
+    verification measured it, the fresh estimate then spread by both intervals (a flat prior's
+    predictive: the verified estimate is as uncertain as its interval says). Beside
+    `chance_of_failing` (every tier exactly at its level) it brackets what a search whose
+    intervals are right should show: the search aims at the level, so the truth lies between
+    the two. A stepped tier: taken as 0."""
+    if row["verdict"].endswith("(step)"):
+        return 0.0
+    low, high = row["ci"]
+    fresh = (high - low) / (2 * Z95)
+    spread = math.hypot(fresh, verification["half_width"] / Z95)
+    offset = verification["normalised"] - level
+    reach = max(Z95 * fresh, GOAL_TOLERANCE)
+    root2 = math.sqrt(2) * spread
+    return (math.erfc((reach - offset) / root2) + math.erfc((reach + offset) / root2)) / 2
+
+
 def episodes_inside_band(verification: dict, level: float, tolerance: float) -> int | None:
     """Verification episodes for the interval to lie inside level ± tolerance (shown to hold)
     at the verified estimate, or None where the estimate itself is off that band (no number of
@@ -164,7 +185,8 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
     """Verified tiers by whether their verification met its target, and how many of each fail
     the goal's test on fresh episodes (`checks`: run name and fresh_check.py JSON), by the
     protocol version the run was built at, beside how many would fail by chance alone were each
-    exactly at its level (`chance_of_failing`), then the failing ones; a run whose records are
+    exactly at its level (`chance_of_failing`) or where verified
+    (`chance_of_failing_where_verified`), then the failing ones; a run whose records are
     another's byte for byte counts once. A check of other impact records than the committed ones
     (a tier's severity differs: the run was rebuilt since, e.g. at a new protocol version) is left
     out and named."""
@@ -172,6 +194,7 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
 
     outcome: Counter = Counter()
     chance: Counter = Counter()
+    chance_where_verified: Counter = Counter()
     failures = []
     used, other, counted = [], [], set()
     for run, path in checks:
@@ -197,14 +220,20 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
                                                         else "not met")  # fmt: skip
                 outcome[met, passes(row)] += 1
                 chance[met] += chance_of_failing(row)
+                chance_where_verified[met] += chance_of_failing_where_verified(
+                    row, verification, tier["level"]
+                )
                 if not passes(row):
                     failures.append((run, row, tier, search))
     lines = ["", f"Verified tiers on fresh episodes ({len(used)} runs):", "",
              "| verification | tiers | fail the goal's test | expected to fail were each at its "
-             "level |", "|---|---:|---:|---:|"]  # fmt: skip
+             "level | were each where verified |", "|---|---:|---:|---:|---:|"]  # fmt: skip
     for met in sorted(chance, reverse=True):  # the newest protocol first
         total = outcome[met, True] + outcome[met, False]
-        lines.append(f"| {met} | {total} | {outcome[met, False]} | {chance[met]:.1f} |")
+        lines.append(
+            f"| {met} | {total} | {outcome[met, False]} | {chance[met]:.1f} | "
+            f"{chance_where_verified[met]:.1f} |"
+        )
     if failures:
         lines += failure_lines(failures)
     if other:

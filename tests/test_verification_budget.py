@@ -118,6 +118,27 @@ def test_the_chance_that_the_test_fails_a_tier_exactly_at_its_level(budget):
     assert budget.chance_of_failing({**wide, "verdict": "undecided at 150 episodes (step)"}) == 0
 
 
+def test_the_chance_that_the_test_fails_a_tier_where_it_was_verified(budget):
+    row = {"verdict": "undecided at 150 episodes", "ci": [0.9108, 0.9892]}  # spread 0.02
+    # Verified exactly at the level with a negligible interval: the chance at the level.
+    exact = {"normalised": 0.95, "half_width": 1e-9}
+    assert budget.chance_of_failing_where_verified(row, exact, 0.95) == pytest.approx(
+        budget.chance_of_failing(row), rel=1e-6
+    )
+    # The verification's own interval widens the fresh estimate's spread: more failures.
+    wide = {"normalised": 0.95, "half_width": 0.02}
+    assert budget.chance_of_failing_where_verified(row, wide, 0.95) > budget.chance_of_failing(row)
+    # At the band's edge (0.015 off; the interval decides, at ±0.039) about one in nine fails;
+    # far off, nearly every one, either side.
+    edge = budget.chance_of_failing_where_verified(row, {**exact, "normalised": 0.965}, 0.95)
+    assert 0.1 < edge < 0.13
+    for off in (0.85, 1.05):
+        far = {"normalised": off, "half_width": 0.01}
+        assert budget.chance_of_failing_where_verified(row, far, 0.95) > 0.99
+    stepped = {**row, "verdict": "within 0.02 (step)"}
+    assert budget.chance_of_failing_where_verified(stepped, wide, 0.95) == 0
+
+
 def test_the_episodes_that_would_show_a_tier_inside_its_band(budget):
     verification = {"episodes": 100, "half_width": 0.02, "normalised": 0.94}
     # 0.01 of room on either side of the estimate: the half-width halved, four times the episodes.
@@ -140,7 +161,9 @@ def test_a_verified_tier_failing_on_fresh_episodes_is_listed(budget, tmp_path):
            "normalised": tier["level"] - 0.05, "ci": [tier["level"] - 0.08, tier["level"] - 0.04],
            "verdict": "misses by -0.050", "level_in_ci": False, "difference": -0.05}  # fmt: skip
     out = _with_root_check([row], tmp_path)
-    assert re.search(r"^\| protocol \d, target (not )?met \| 1 \| 1 \| \d\.\d \|$", out, re.M)
+    assert re.search(
+        r"^\| protocol \d, target (not )?met \| 1 \| 1 \| \d\.\d \| \d\.\d \|$", out, re.M
+    )
     listed = out.splitlines()[-1].split(" | ")
     assert listed[:4] == ["| root", fault, name, f"{tier['level']:g}"]
     needed = budget.episodes_inside_band(tier["verification"], tier["level"],
