@@ -117,34 +117,22 @@ def passes(row: dict) -> bool:
     return row["level_in_ci"] or abs(row["difference"]) <= GOAL_TOLERANCE
 
 
-def chance_of_failing(row: dict) -> float:
-    """The probability that the goal's test fails a tier whose true R̃ is exactly its level,
-    from the spread of the fresh estimate (its interval's width as a normal one's): the test
-    fails when the level is outside the fresh interval AND over 0.03 from the estimate, so at
-    most 5% a tier. A stepped tier's band is wide: taken as 0."""
-    if row["verdict"].endswith("(step)"):
-        return 0.0
-    low, high = row["ci"]
-    spread = (high - low) / (2 * Z95)
-    return math.erfc(max(Z95, GOAL_TOLERANCE / spread) / math.sqrt(2))
-
-
-def chance_of_failing_where_verified(row: dict, verification: dict, level: float) -> float:
-    """The probability that the goal's test fails a tier whose true R̃ is where its
-    verification measured it, the fresh estimate then spread by both intervals (a flat prior's
-    predictive: the verified estimate is as uncertain as its interval says). Beside
-    `chance_of_failing` (every tier exactly at its level) it brackets what a search whose
-    intervals are right should show: the search aims at the level, so the truth lies between
-    the two. A stepped tier: taken as 0."""
+def chance_of_failing(row: dict, offset: float = 0.0, half_width: float = 0.0) -> float:
+    """The probability that the goal's test fails a tier whose true R̃ lies `offset` from its
+    level, from the spread of the fresh estimate (its interval's width as a normal one's),
+    widened by a verification interval of `half_width` (the verified estimate as uncertain as
+    its interval says: a flat prior's predictive). The test fails when the level is outside the
+    fresh interval AND over 0.03 from the estimate: a tier exactly at its level (the defaults)
+    fails at most 5% of the time. With the verification's offset and half-width, the tier is
+    where verified; the search aims at the level, so a search whose intervals are right shows
+    a count between the two. A stepped tier's band is wide: taken as 0."""
     if row["verdict"].endswith("(step)"):
         return 0.0
     low, high = row["ci"]
     fresh = (high - low) / (2 * Z95)
-    spread = math.hypot(fresh, verification["half_width"] / Z95)
-    offset = verification["normalised"] - level
     reach = max(Z95 * fresh, GOAL_TOLERANCE)
-    root2 = math.sqrt(2) * spread
-    return (math.erfc((reach - offset) / root2) + math.erfc((reach + offset) / root2)) / 2
+    scale = math.sqrt(2) * math.hypot(fresh, half_width / Z95)
+    return (math.erfc((reach - offset) / scale) + math.erfc((reach + offset) / scale)) / 2
 
 
 def episodes_inside_band(verification: dict, level: float, tolerance: float) -> int | None:
@@ -185,11 +173,10 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
     """Verified tiers by whether their verification met its target, and how many of each fail
     the goal's test on fresh episodes (`checks`: run name and fresh_check.py JSON), by the
     protocol version the run was built at, beside how many would fail by chance alone were each
-    exactly at its level (`chance_of_failing`) or where verified
-    (`chance_of_failing_where_verified`), then the failing ones; a run whose records are
-    another's byte for byte counts once. A check of other impact records than the committed ones
-    (a tier's severity differs: the run was rebuilt since, e.g. at a new protocol version) is left
-    out and named."""
+    exactly at its level or where verified (`chance_of_failing`), then the failing ones; a run
+    whose records are another's byte for byte counts once. A check of other impact records than
+    the committed ones (a tier's severity differs: the run was rebuilt since, e.g. at a new
+    protocol version) is left out and named."""
     from oodrl.suite.migration import built_version  # the rule a run's tiers were verified by
 
     outcome: Counter = Counter()
@@ -220,8 +207,9 @@ def fresh_table(checks: list[tuple[str, Path]], directories: dict[str, Path]) ->
                                                         else "not met")  # fmt: skip
                 outcome[met, passes(row)] += 1
                 chance[met] += chance_of_failing(row)
-                chance_where_verified[met] += chance_of_failing_where_verified(
-                    row, verification, tier["level"]
+                offset = verification["normalised"] - tier["level"]
+                chance_where_verified[met] += chance_of_failing(
+                    row, offset, verification["half_width"]
                 )
                 if not passes(row):
                     failures.append((run, row, tier, search))

@@ -120,23 +120,16 @@ def test_the_chance_that_the_test_fails_a_tier_exactly_at_its_level(budget):
 
 def test_the_chance_that_the_test_fails_a_tier_where_it_was_verified(budget):
     row = {"verdict": "undecided at 150 episodes", "ci": [0.9108, 0.9892]}  # spread 0.02
-    # Verified exactly at the level with a negligible interval: the chance at the level.
-    exact = {"normalised": 0.95, "half_width": 1e-9}
-    assert budget.chance_of_failing_where_verified(row, exact, 0.95) == pytest.approx(
-        budget.chance_of_failing(row), rel=1e-6
-    )
     # The verification's own interval widens the fresh estimate's spread: more failures.
-    wide = {"normalised": 0.95, "half_width": 0.02}
-    assert budget.chance_of_failing_where_verified(row, wide, 0.95) > budget.chance_of_failing(row)
-    # At the band's edge (0.015 off; the interval decides, at ±0.039) about one in nine fails;
-    # far off, nearly every one, either side.
-    edge = budget.chance_of_failing_where_verified(row, {**exact, "normalised": 0.965}, 0.95)
-    assert 0.1 < edge < 0.13
-    for off in (0.85, 1.05):
-        far = {"normalised": off, "half_width": 0.01}
-        assert budget.chance_of_failing_where_verified(row, far, 0.95) > 0.99
+    assert budget.chance_of_failing(row, 0.0, 0.02) > budget.chance_of_failing(row)
+    # At the band's edge (0.015 off; the interval decides, at ±0.039) about one in nine fails,
+    # either side; far off, nearly every one.
+    edge = budget.chance_of_failing(row, 0.015)
+    assert 0.1 < edge < 0.13 and budget.chance_of_failing(row, -0.015) == pytest.approx(edge)
+    for offset in (-0.1, 0.1):
+        assert budget.chance_of_failing(row, offset, 0.01) > 0.99
     stepped = {**row, "verdict": "within 0.02 (step)"}
-    assert budget.chance_of_failing_where_verified(stepped, wide, 0.95) == 0
+    assert budget.chance_of_failing(stepped, 0.1, 0.02) == 0
 
 
 def test_the_episodes_that_would_show_a_tier_inside_its_band(budget):
