@@ -458,7 +458,7 @@ def test_every_generated_table_is_what_its_source_generates():
 
 
 def test_the_headline_says_what_the_time_aware_rule_changes_where_the_results_hold_both():
-    """Protocol 4's leaderboard holds both threshold rules: a last column gives each shown
+    """Since protocol 4 the leaderboard holds both threshold rules: a last column gives each shown
     detector's paired difference with its CI, and the caption the rankings' Kendall τ. A
     leaderboard of one rule (protocol 3's, or a board whose results hold no time-aware rule) has
     no such column."""
