@@ -12,6 +12,7 @@ import pytest
 import yaml
 from suite_repo import (
     SUITE,
+    code_env,
     copy_built,
     head_commit,
     run_folder,
@@ -181,6 +182,25 @@ def test_try_runs_only_the_detectors_stages_and_prints_its_ranks(built_suite):
 
     again = _try(built_suite, "hbos", "--class", "pyod.models.hbos:HBOS")
     assert again.exit_code == 2 and "'hbos' is already a detector" in again.output
+
+
+@pytest.mark.slow
+def test_a_task_restores_what_the_cache_holds_in_one_checkout(built_suite, tmp_path):
+    """Without a remote, a task's fresh clone checks out what the shared cache holds before
+    `dvc repro`: every current stage is then unchanged, where DVC would otherwise restore each
+    one's outputs in turn ("is cached - skipping run"), rewriting dvc.lock after each (most of a
+    try's run on the real suite: docs/performance.md)."""
+    from oodrl.suite.run import ran_stages, restore_outputs
+
+    clone = tmp_path / "clone"
+    run(tmp_path, "git", "clone", "-q", str(built_suite), str(clone))
+    project = clone / CARTPOLE
+    cache = run(built_suite, "dvc", "cache", "dir").stdout.strip()
+    run(project, "dvc", "cache", "dir", "--local", cache)
+    restore_outputs(project, {}, None)
+    done = run(project, "dvc", "repro", env=code_env(clone))
+    assert ran_stages(done.stdout) == () and "is cached" not in done.stdout, done.stdout
+    assert "didn't change" in done.stdout, done.stdout
 
 
 def test_an_environment_listing_its_own_detectors_gets_the_new_one_appended(repo_root):

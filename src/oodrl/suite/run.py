@@ -44,7 +44,11 @@ run what changed": it skips, without pulling, a stage whose outputs are missing 
 current, and forgives a missing dep only when its path is absent, so a stage that must run
 after a skipped one would read inputs never pulled. One `dvc pull` is also faster than
 DVC's pull per stage. `dvc pull --allow-missing` passes over a remote that does not answer, so
-a remote is checked before any task starts (`_check_remote`).
+a remote is checked before any task starts (`_check_remote`). Without a remote a task first
+checks out what the shared cache has (`dvc checkout --allow-missing`), for the same reason:
+`dvc repro` restores a current stage whose outputs a fresh clone lacks one stage at a time,
+rewriting dvc.lock after each, and `oodrl suite try`'s results stages sit below every
+detector's stages (docs/performance.md, "`oodrl suite try` at protocol 5").
 """
 
 from __future__ import annotations
@@ -169,8 +173,7 @@ def build_pipeline(
         project = clone / pipeline
         if shared_cache:
             _run(project, env, "dvc", "cache", "dir", "--local", shared_cache)
-        if remote:  # what the remote has, in one pull (why: the module's docstring)
-            _from_remote(project, env, remote, "pull", "--allow-missing", "-q", check=True)
+        restore_outputs(project, env, remote)
         chosen = tuple(targets[pipeline]) if targets is not None else ()
         done = _from_remote(project, env, remote, "repro", *(["--pull"] if remote else []),
                             *chosen)  # fmt: skip
@@ -178,6 +181,15 @@ def build_pipeline(
             _push(project, env)
         files = checkout_files(project)
     return time.perf_counter() - start, ran_stages(done.stdout), files
+
+
+def restore_outputs(project: Path, env: dict[str, str], remote: Remote | None) -> None:
+    """Put in a fresh clone's project, in one go, what the remote has of its outputs, or without
+    a remote what the cache has, before `dvc repro` (why: the module's docstring)."""
+    if remote:
+        _from_remote(project, env, remote, "pull", "--allow-missing", "-q", check=True)
+    else:
+        _run(project, env, "dvc", "checkout", "--allow-missing", "-q")
 
 
 def _from_remote(
